@@ -1,0 +1,1 @@
+"""Human motion in: SMPL skeleton, importers (GVHMR, AMASS npz, video), the bundled sample."""

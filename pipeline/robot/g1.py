@@ -1,0 +1,249 @@
+"""Builds the G1 MuJoCo model in code (MjSpec) from the vendored mjlab MJCF and robots/g1/robot.yaml.
+
+What this adds to the upstream MJCF, as AdaMimic uses the robot:
+  * waist roll and pitch welded (27 actuated joints);
+  * position actuators with the armature-based PD design (Kp = J w^2, Kd = 2 zeta J w) and the
+    motors' effort limits, joint armature = J;
+  * the 17 tracked bodies as sites `track_<name>`;
+  * robot-vs-world collisions only (no self collisions), feet as capsules with condim 3;
+  * the ground from a terrain hook (flat plane by default).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable
+
+import mujoco
+import numpy as np
+import yaml
+
+from pipeline.robot.assets import ROBOT_DIR, mjcf_path
+
+TerrainBuilder = Callable[[mujoco.MjSpec], None]
+TRACK_SITE_PREFIX = "track_"
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    name: str
+    joint_names: tuple[str, ...]
+    default_joint_pos: np.ndarray
+    armature: np.ndarray
+    kp: np.ndarray
+    kd: np.ndarray
+    effort_limit: np.ndarray
+    velocity_limit: np.ndarray
+    action_scale: np.ndarray
+    tracked_bodies: dict[str, tuple[str, tuple[float, float, float]]]
+    feet: dict[str, dict]
+    locked_joints: tuple[str, ...]
+    sim_dt: float
+    control_dt: float
+    default_root_height: float
+    foot_friction: float
+    natural_frequency_hz: float = 10.0
+    damping_ratio: float = 2.0
+    motor_of_joint: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def decimation(self) -> int:
+        return int(round(self.control_dt / self.sim_dt))
+
+    @property
+    def tracked_body_names(self) -> tuple[str, ...]:
+        return tuple(self.tracked_bodies)
+
+    @property
+    def tracked_site_names(self) -> tuple[str, ...]:
+        return tuple(TRACK_SITE_PREFIX + name for name in self.tracked_bodies)
+
+    def metadata(self) -> dict:
+        """What a deployment needs to know about the robot, JSON-ready."""
+        return {
+            "robot": self.name,
+            "joint_names": list(self.joint_names),
+            "default_joint_pos": self.default_joint_pos.tolist(),
+            "kp": self.kp.tolist(),
+            "kd": self.kd.tolist(),
+            "effort_limit": self.effort_limit.tolist(),
+            "action_scale": self.action_scale.tolist(),
+            "sim_dt": self.sim_dt,
+            "control_dt": self.control_dt,
+        }
+
+
+def reflected_inertia(rotor_inertia: list[float], gears: list[float]) -> float:
+    """Rotor inertia seen at the output of a two-stage planetary (first gear ratio is 1)."""
+    i_rotor, i_stage1, i_stage2 = rotor_inertia
+    _, g2, g3 = gears
+    return i_rotor * (g2 * g3) ** 2 + i_stage1 * g3**2 + i_stage2
+
+
+def _motor_table(raw: dict) -> dict[str, dict[str, float]]:
+    table = {}
+    for name, spec in raw.items():
+        if "same_as" in spec:
+            continue
+        table[name] = {
+            "armature": reflected_inertia(spec["rotor_inertia"], spec["gears"]),
+            "effort_limit": float(spec["effort_limit"]),
+            "velocity_limit": float(spec["velocity_limit"]),
+        }
+    for name, spec in raw.items():
+        if "same_as" in spec:
+            base, k = table[spec["same_as"]], float(spec["multiplier"])
+            table[name] = {
+                "armature": base["armature"] * k,
+                "effort_limit": base["effort_limit"] * k,
+                "velocity_limit": base["velocity_limit"],
+            }
+    return table
+
+
+@lru_cache(maxsize=4)
+def load_robot_config(path: str | Path = ROBOT_DIR / "robot.yaml") -> RobotConfig:
+    raw = yaml.safe_load(Path(path).read_text())
+    motors = _motor_table(raw["motors"])
+    omega = 2.0 * math.pi * float(raw["natural_frequency_hz"])
+    zeta = float(raw["damping_ratio"])
+    names = tuple(raw["joints"])
+    motor_of = {n: raw["joints"][n]["motor"] for n in names}
+    armature = np.array([motors[motor_of[n]]["armature"] for n in names])
+    kp = armature * omega**2
+    kd = 2.0 * zeta * armature * omega
+    effort = np.array([motors[motor_of[n]]["effort_limit"] for n in names])
+    return RobotConfig(
+        name=raw["name"],
+        joint_names=names,
+        default_joint_pos=np.array([float(raw["joints"][n]["default"]) for n in names]),
+        armature=armature,
+        kp=kp,
+        kd=kd,
+        effort_limit=effort,
+        velocity_limit=np.array([motors[motor_of[n]]["velocity_limit"] for n in names]),
+        action_scale=float(raw["action_scale_factor"]) * effort / kp,
+        tracked_bodies={k: (v["body"], tuple(v["pos"])) for k, v in raw["tracked_bodies"].items()},
+        feet=raw["feet"],
+        locked_joints=tuple(raw["locked_joints"]),
+        sim_dt=float(raw["sim_dt"]),
+        control_dt=float(raw["control_dt"]),
+        default_root_height=float(raw["default_root_height"]),
+        foot_friction=float(raw["foot_friction"]),
+        natural_frequency_hz=float(raw["natural_frequency_hz"]),
+        damping_ratio=zeta,
+        motor_of_joint=motor_of,
+    )
+
+
+def add_flat_ground(spec: mujoco.MjSpec) -> None:
+    spec.worldbody.add_geom(
+        name="ground",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[0.0, 0.0, 0.05],
+        rgba=[0.35, 0.4, 0.45, 1.0],
+        contype=1,
+        conaffinity=1,
+        condim=3,
+    )
+
+
+def _add_rendering_extras(spec: mujoco.MjSpec) -> None:
+    spec.worldbody.add_light(name="sun", pos=[0, 0, 4], dir=[0, 0, -1], castshadow=False)
+    spec.visual.global_.offwidth = 1280
+    spec.visual.global_.offheight = 720
+    spec.visual.quality.shadowsize = 0
+
+
+def build_spec(
+    terrain: TerrainBuilder | None = None,
+    visual: bool = True,
+    config: RobotConfig | None = None,
+) -> mujoco.MjSpec:
+    """The G1 scene as an editable MjSpec. `visual=False` drops meshes (training needs none)."""
+    cfg = config or load_robot_config()
+    spec = mujoco.MjSpec.from_file(str(mjcf_path()))
+    spec.option.timestep = cfg.sim_dt
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+
+    for sensor in list(spec.sensors):
+        spec.delete(sensor)
+    for name in cfg.locked_joints:
+        spec.delete(spec.joint(name))
+
+    foot_pattern = re.compile(r"^(left|right)_foot[1-7]_collision$")
+    for geom in list(spec.geoms):
+        if geom.classname.name == "visual" or geom.type == mujoco.mjtGeom.mjGEOM_MESH:
+            if not visual:
+                spec.delete(geom)
+            continue
+        if geom.name.endswith("_collision"):
+            # Collide with the world only: self contacts cost time and the paper does not need them.
+            geom.contype, geom.conaffinity = 0, 1
+            if foot_pattern.match(geom.name):
+                geom.condim, geom.priority = 3, 1
+                geom.friction = [cfg.foot_friction, 0.005, 0.0001]
+            else:
+                geom.condim = 1
+    if not visual:
+        for mesh in list(spec.meshes):
+            spec.delete(mesh)
+
+    for i, name in enumerate(cfg.joint_names):
+        joint = spec.joint(name)
+        if joint is None:
+            raise KeyError(f"robot.yaml joint {name!r} is not in {mjcf_path()}")
+        joint.armature = float(cfg.armature[i])
+        act = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=float(cfg.kp[i]), kv=float(cfg.kd[i]))
+        act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        act.forcerange = [-float(cfg.effort_limit[i]), float(cfg.effort_limit[i])]
+        act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+
+    for name, (body_name, pos) in cfg.tracked_bodies.items():
+        body = spec.body(body_name)
+        if body is None:
+            raise KeyError(f"robot.yaml tracked body {name!r}: no body {body_name!r} in the MJCF")
+        body.add_site(name=TRACK_SITE_PREFIX + name, pos=list(pos), size=[0.02, 0, 0], group=4,
+                      rgba=[0.9, 0.2, 0.2, 1.0])
+
+    (terrain or add_flat_ground)(spec)
+    if visual:
+        _add_rendering_extras(spec)
+    home = spec.add_key(name="home")
+    home.qpos = default_qpos(cfg).tolist()
+    return spec
+
+
+def build_model(terrain: TerrainBuilder | None = None, visual: bool = False) -> mujoco.MjModel:
+    return build_spec(terrain=terrain, visual=visual).compile()
+
+
+def default_qpos(cfg: RobotConfig | None = None) -> np.ndarray:
+    cfg = cfg or load_robot_config()
+    return np.concatenate([[0.0, 0.0, cfg.default_root_height, 1.0, 0.0, 0.0, 0.0], cfg.default_joint_pos])
+
+
+def joint_qpos_indices(model: mujoco.MjModel, joint_names: tuple[str, ...]) -> np.ndarray:
+    return np.array([model.jnt_qposadr[model.joint(n).id] for n in joint_names])
+
+
+def joint_dof_indices(model: mujoco.MjModel, joint_names: tuple[str, ...]) -> np.ndarray:
+    return np.array([model.jnt_dofadr[model.joint(n).id] for n in joint_names])
+
+
+def site_ids(model: mujoco.MjModel, site_names: tuple[str, ...]) -> np.ndarray:
+    return np.array([model.site(n).id for n in site_names])
+
+
+def joint_limits(model: mujoco.MjModel, joint_names: tuple[str, ...]) -> np.ndarray:
+    """(J, 2) position limits in the given joint order."""
+    return np.array([model.jnt_range[model.joint(n).id] for n in joint_names])
