@@ -1,0 +1,84 @@
+"""`params.yaml` → one typed, validated `PipelineConfig`.
+
+Each concern owns its section's dataclass (retarget, tasks, env, train, evaluate) and validates it
+with errors that name the offending key; this module only composes them, rejects unknown top-level
+keys and resolves the compute profile. Validation runs at the start of every stage, so a broken
+edit stops `dvc repro` at its first stage with the key named.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pipeline.common.errors import PipelineInputError
+
+PROFILES = ("cpu", "gpu")
+TOP_LEVEL_KEYS = ("profile", "variants", "retarget", "tasks", "env", "train", "evaluate")
+
+
+@dataclass
+class PipelineConfig:
+    path: Path
+    profile: str
+    variants: tuple[str, ...]
+    retarget: Any  # pipeline.retarget.config.RetargetConfig
+    tasks: dict[str, Any]  # name -> pipeline.keyframes.config.TaskConfig
+    env: Any  # pipeline.envs.config.EnvConfig
+    train: Any  # pipeline.rl.config.TrainConfig (profile already applied)
+    evaluate: Any  # pipeline.evaluation.config.EvalConfig
+    raw: dict
+
+
+def _section(raw: dict, key: str, path: Path) -> dict:
+    value = raw.get(key, {})
+    if value is None:
+        value = {}
+    if not isinstance(value, dict):
+        raise PipelineInputError(path, key, f"must be a mapping, got {type(value).__name__}")
+    return value
+
+
+def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
+    from pipeline.envs.config import EnvConfig
+    from pipeline.evaluation.config import EvalConfig
+    from pipeline.keyframes.config import load_tasks, load_yaml_strict
+    from pipeline.retarget.config import RetargetConfig
+    from pipeline.rl.config import TrainConfig, validate_variant
+
+    path = Path(path)
+    if not path.exists():
+        raise PipelineInputError(path, None, "parameters file not found")
+    raw = load_yaml_strict(path)
+    if not isinstance(raw, dict):
+        raise PipelineInputError(path, None, "must be a YAML mapping")
+    unknown = sorted(set(raw) - set(TOP_LEVEL_KEYS))
+    if unknown:
+        raise PipelineInputError(path, unknown[0], f"unknown key (expected one of {', '.join(TOP_LEVEL_KEYS)})")
+
+    profile = raw.get("profile", "cpu")
+    if profile not in PROFILES:
+        raise PipelineInputError(path, "profile", f"must be one of {PROFILES}, got {profile!r}")
+    variants = raw.get("variants", ["adamimic"])
+    if not isinstance(variants, list) or not variants:
+        raise PipelineInputError(path, "variants", "must be a non-empty list of variant names")
+    for i, name in enumerate(variants):
+        validate_variant(name, where=f"{path}: variants[{i}]")
+    if len(set(variants)) != len(variants):
+        raise PipelineInputError(path, "variants", "lists a variant twice")
+
+    tasks_raw = _section(raw, "tasks", path)
+    if not tasks_raw:
+        raise PipelineInputError(path, "tasks", "declare at least one task")
+    return PipelineConfig(
+        path=path,
+        profile=profile,
+        variants=tuple(variants),
+        retarget=RetargetConfig.from_dict(_section(raw, "retarget", path), where="retarget"),
+        tasks=load_tasks(tasks_raw, base_dir=path.parent),
+        env=EnvConfig.from_dict(_section(raw, "env", path), where="env"),
+        train=TrainConfig.from_dict(_section(raw, "train", path), where="train", profile=profile),
+        evaluate=EvalConfig.from_dict(_section(raw, "evaluate", path), where="evaluate"),
+        raw=raw,
+    )
