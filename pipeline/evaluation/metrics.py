@@ -1,0 +1,178 @@
+"""The paper's evaluation metrics, as pure functions of recorded trajectories (numpy only).
+
+Definitions (AdaMimic, "Evaluation metrics"):
+  * success: an episode fails if the mean distance error over the tracked bodies exceeds 1 m at
+    any keyframe. An episode that ends (falls, is terminated) before crossing all its keyframes
+    never reached them, so it fails too.
+  * E_g-bpe (mm): world-frame body position error averaged over bodies and keyframe phases.
+  * E_l-bpe (mm): root-frame body position error averaged over bodies and all steps.
+  * E_smth (rad/s^2): mean absolute joint acceleration over the episode.
+
+Errors are pooled: over a set of episodes, E_g-bpe is the mean over every (episode, keyframe,
+body) sample, E_l-bpe over every (episode, step, body) sample, E_smth over every (episode, step,
+joint) sample. Each episode therefore keeps sums and counts (`EpisodeMetrics`) so that
+aggregation over any grouping (ψ range, ψ bin) is exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SUCCESS_THRESHOLD_M = 1.0
+METRIC_NAMES = ("success", "e_l_bpe", "e_g_bpe", "e_smth")
+METRIC_LABELS = {
+    "success": "Succ. (%)",
+    "e_l_bpe": "E_l-bpe (mm)",
+    "e_g_bpe": "E_g-bpe (mm)",
+    "e_smth": "E_smth (rad/s²)",
+}
+
+
+@dataclass
+class EpisodeRecord:
+    """What one evaluation episode recorded, one row per control step.
+
+    body_error_world: (T, B) distance (m) of each tracked body to its global target, world frame.
+    body_error_local: (T, B) distance (m) of each tracked body to its target, root frame.
+    keyframe_crossed: (T,) bool, True on the step whose phase crossed a keyframe.
+    joint_acc: (T, J) joint accelerations (rad/s^2).
+    psi: the episode's task variable; num_keyframes: how many keyframes the episode should cross.
+    phase, phase_rate_offset, adapter_action_norm: optional (T,) traces for the adapter figure.
+    """
+
+    body_error_world: np.ndarray
+    body_error_local: np.ndarray
+    keyframe_crossed: np.ndarray
+    joint_acc: np.ndarray
+    psi: float
+    num_keyframes: int
+    phase: np.ndarray | None = None
+    phase_rate_offset: np.ndarray | None = None
+    adapter_action_norm: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.body_error_world = np.asarray(self.body_error_world, dtype=np.float64)
+        self.body_error_local = np.asarray(self.body_error_local, dtype=np.float64)
+        self.keyframe_crossed = np.asarray(self.keyframe_crossed, dtype=bool).reshape(-1)
+        self.joint_acc = np.asarray(self.joint_acc, dtype=np.float64)
+        t = self.keyframe_crossed.shape[0]
+        for name in ("body_error_world", "body_error_local", "joint_acc"):
+            arr = getattr(self, name)
+            if arr.ndim != 2 or arr.shape[0] != t:
+                raise ValueError(f"EpisodeRecord.{name}: expected ({t}, n), got {arr.shape}")
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.keyframe_crossed.shape[0])
+
+
+@dataclass(frozen=True)
+class EpisodeMetrics:
+    """Per-episode success plus sums and counts of each pooled error."""
+
+    psi: float
+    success: bool
+    global_error_sum: float  # m, over (keyframe, body) samples
+    global_error_count: int
+    local_error_sum: float  # m, over (step, body) samples
+    local_error_count: int
+    joint_acc_abs_sum: float  # rad/s^2, over (step, joint) samples
+    joint_acc_count: int
+
+
+def keyframe_mean_errors(body_error_world: np.ndarray, keyframe_crossed: np.ndarray) -> np.ndarray:
+    """(K_crossed,) mean over bodies of the world error on each keyframe-crossing step."""
+    err = np.asarray(body_error_world, dtype=np.float64)
+    crossed = np.asarray(keyframe_crossed, dtype=bool).reshape(-1)
+    return err[crossed].mean(axis=1) if crossed.any() else np.zeros(0)
+
+
+def episode_success(body_error_world, keyframe_crossed, num_keyframes: int,
+                    threshold: float = SUCCESS_THRESHOLD_M) -> bool:
+    """True when every keyframe was reached and none had a body-mean world error above `threshold`."""
+    per_keyframe = keyframe_mean_errors(body_error_world, keyframe_crossed)
+    if per_keyframe.shape[0] < num_keyframes:
+        return False
+    return bool(np.all(per_keyframe <= threshold))
+
+
+def episode_metrics(record: EpisodeRecord, threshold: float = SUCCESS_THRESHOLD_M) -> EpisodeMetrics:
+    crossed = record.keyframe_crossed
+    at_keyframes = record.body_error_world[crossed]
+    return EpisodeMetrics(
+        psi=float(record.psi),
+        success=episode_success(record.body_error_world, crossed, record.num_keyframes, threshold),
+        global_error_sum=float(at_keyframes.sum()),
+        global_error_count=int(at_keyframes.size),
+        local_error_sum=float(record.body_error_local.sum()),
+        local_error_count=int(record.body_error_local.size),
+        joint_acc_abs_sum=float(np.abs(record.joint_acc).sum()),
+        joint_acc_count=int(record.joint_acc.size),
+    )
+
+
+def _ratio(num: float, den: int) -> float:
+    return float(num / den) if den > 0 else float("nan")
+
+
+def aggregate(episodes: list[EpisodeMetrics]) -> dict[str, float]:
+    """Success rate (%) and pooled errors (E_*-bpe in mm, E_smth in rad/s^2) over episodes."""
+    if not episodes:
+        return {name: float("nan") for name in METRIC_NAMES} | {"episodes": 0}
+    return {
+        "success": 100.0 * float(np.mean([e.success for e in episodes])),
+        "e_l_bpe": 1000.0 * _ratio(sum(e.local_error_sum for e in episodes),
+                                   sum(e.local_error_count for e in episodes)),
+        "e_g_bpe": 1000.0 * _ratio(sum(e.global_error_sum for e in episodes),
+                                   sum(e.global_error_count for e in episodes)),
+        "e_smth": _ratio(sum(e.joint_acc_abs_sum for e in episodes),
+                         sum(e.joint_acc_count for e in episodes)),
+        "episodes": len(episodes),
+    }
+
+
+def aggregate_ranges(runs: list[dict[str, list[EpisodeMetrics]]]) -> dict[str, dict[str, dict[str, float]]]:
+    """Per range (easy, hard, and overall = their union) mean ± std over runs of each metric.
+
+    `runs[r][range_name]` holds the episodes of run r in that range. Returns
+    {range: {metric: {"mean": m, "std": s}}, ...} with std the population std over runs.
+    """
+    if not runs:
+        raise ValueError("aggregate_ranges needs at least one run")
+    ranges = list(runs[0])
+    per_run: dict[str, list[dict[str, float]]] = {name: [] for name in ranges + ["overall"]}
+    for run in runs:
+        for name in ranges:
+            per_run[name].append(aggregate(run[name]))
+        per_run["overall"].append(aggregate([e for name in ranges for e in run[name]]))
+    return {name: mean_std(values) for name, values in per_run.items()}
+
+
+def mean_std(values: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Mean and (population) std over runs of each metric; `episodes` is summed."""
+    out: dict[str, dict[str, float]] = {}
+    for metric in METRIC_NAMES:
+        column = np.array([v[metric] for v in values], dtype=np.float64)
+        finite = column[np.isfinite(column)]
+        out[metric] = {
+            "mean": float(finite.mean()) if finite.size else float("nan"),
+            "std": float(finite.std()) if finite.size else float("nan"),
+        }
+    out["episodes"] = {"total": int(sum(v.get("episodes", 0) for v in values)), "runs": len(values)}
+    return out
+
+
+def bin_by_psi(episodes: list[EpisodeMetrics], edges: np.ndarray) -> list[dict[str, float]]:
+    """Metrics per ψ bin [edges[i], edges[i+1]) (last bin closed): rows for plots vs ψ."""
+    edges = np.asarray(edges, dtype=np.float64)
+    psi = np.array([e.psi for e in episodes])
+    rows = []
+    for i in range(len(edges) - 1):
+        lo, hi = edges[i], edges[i + 1]
+        inside = (psi >= lo) & ((psi < hi) if i < len(edges) - 2 else (psi <= hi))
+        row = aggregate([e for e, keep in zip(episodes, inside) if keep])
+        rows.append({"psi": float(0.5 * (lo + hi)), "psi_lo": float(lo), "psi_hi": float(hi)} | row)
+    return rows

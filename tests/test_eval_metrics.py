@@ -1,0 +1,95 @@
+"""The paper's metrics on hand-made trajectories whose answers are known."""
+
+import numpy as np
+import pytest
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.evaluation.config import EvalConfig
+from pipeline.evaluation.metrics import (
+    EpisodeRecord,
+    aggregate,
+    aggregate_ranges,
+    bin_by_psi,
+    episode_metrics,
+    episode_success,
+)
+
+
+def _record(world, local=None, crossed=None, acc=None, psi=0.0, num_keyframes=None):
+    world = np.asarray(world, float)
+    t, b = world.shape
+    crossed = np.zeros(t, bool) if crossed is None else np.asarray(crossed, bool)
+    return EpisodeRecord(
+        body_error_world=world,
+        body_error_local=np.zeros((t, b)) if local is None else local,
+        keyframe_crossed=crossed,
+        joint_acc=np.zeros((t, 2)) if acc is None else acc,
+        psi=psi,
+        num_keyframes=int(crossed.sum()) if num_keyframes is None else num_keyframes,
+    )
+
+
+def test_success_uses_body_mean_at_keyframes_only():
+    # Two bodies; step 1 is a keyframe with errors (0.5, 1.4): mean 0.95 <= 1 -> success,
+    # although one body is above 1 m. Step 2 is far off (3 m) but is no keyframe.
+    world = [[0.1, 0.1], [0.5, 1.4], [3.0, 3.0], [0.2, 0.2]]
+    crossed = [False, True, False, True]
+    assert episode_success(world, crossed, num_keyframes=2)
+    # Same keyframe with (0.7, 1.4): mean 1.05 > 1 -> failure.
+    world[1] = [0.7, 1.4]
+    assert not episode_success(world, crossed, num_keyframes=2)
+
+
+def test_episode_that_misses_keyframes_fails():
+    world = np.full((5, 3), 0.05)
+    crossed = [False, True, False, False, False]  # fell after the first of three keyframes
+    assert not episode_success(world, crossed, num_keyframes=3)
+    assert episode_success(world, crossed, num_keyframes=1)
+
+
+def test_errors_and_smoothness_known_values():
+    world = np.array([[9.0, 9.0], [0.1, 0.3], [9.0, 9.0], [0.2, 0.4]])  # keyframes at steps 1, 3
+    local = np.array([[0.01, 0.03], [0.02, 0.02], [0.0, 0.04], [0.01, 0.01]])
+    acc = np.array([[1.0, -3.0], [2.0, 2.0], [-4.0, 0.0], [0.0, 0.0]])
+    m = episode_metrics(_record(world, local, [0, 1, 0, 1], acc))
+    out = aggregate([m])
+    assert out["e_g_bpe"] == pytest.approx(1000 * (0.1 + 0.3 + 0.2 + 0.4) / 4)  # 250 mm
+    assert out["e_l_bpe"] == pytest.approx(1000 * 0.14 / 8)  # 17.5 mm
+    assert out["e_smth"] == pytest.approx(12.0 / 8)  # 1.5 rad/s^2
+    assert out["success"] == 100.0
+
+
+def test_pooled_over_episodes_and_ranges():
+    ok = episode_metrics(_record(np.full((2, 1), 0.1), crossed=[0, 1], psi=0.5))
+    bad = episode_metrics(_record(np.full((2, 1), 2.0), crossed=[0, 1], psi=1.5))
+    other_ok = episode_metrics(_record(np.full((2, 1), 0.3), crossed=[1, 1], psi=1.6))
+    # Pooled global error: samples 0.1, 2.0, 0.3, 0.3 -> 675 mm
+    assert aggregate([ok, bad, other_ok])["e_g_bpe"] == pytest.approx(675.0)
+    run1 = {"easy": [ok], "hard": [bad, other_ok]}
+    run2 = {"easy": [ok], "hard": [other_ok, other_ok]}
+    out = aggregate_ranges([run1, run2])
+    assert out["easy"]["success"] == {"mean": 100.0, "std": 0.0}
+    assert out["hard"]["success"]["mean"] == pytest.approx(75.0)
+    assert out["hard"]["success"]["std"] == pytest.approx(25.0)
+    assert out["overall"]["success"]["mean"] == pytest.approx((200 / 3 + 100) / 2)
+    assert out["overall"]["episodes"]["total"] == 6
+    rows = bin_by_psi([ok, bad, other_ok], np.array([0.0, 1.0, 2.0]))
+    assert [r["success"] for r in rows] == [100.0, 50.0]
+    assert rows[1]["psi"] == 1.5
+
+
+def test_record_shape_mismatch_is_rejected():
+    with pytest.raises(ValueError):
+        EpisodeRecord(np.zeros((3, 2)), np.zeros((4, 2)), np.zeros(3, bool), np.zeros((3, 2)), 0.0, 1)
+
+
+def test_eval_config_from_dict():
+    cfg = EvalConfig.from_dict({"episodes_per_range": 10, "runs": 2, "video": {"psi": [1.2, 2]}})
+    assert cfg.episodes_per_range == 10 and cfg.video.psi == (1.2, 2.0)
+    assert EvalConfig.from_dict(None) == EvalConfig()
+    with pytest.raises(PipelineInputError, match="evaluate: episodes"):
+        EvalConfig.from_dict({"episodes": 3})
+    with pytest.raises(PipelineInputError, match="runs"):
+        EvalConfig.from_dict({"runs": 0})
+    with pytest.raises(PipelineInputError, match="evaluate.video: fps"):
+        EvalConfig.from_dict({"video": {"fps": "fast"}})
