@@ -1,0 +1,140 @@
+"""One ONNX graph for the deployed policy, its metadata, parity check and the hub-format folder.
+
+The graph is the whole deployed controller: observation history (raw, as the robot measures it)
+→ normalisation → stage-1 actor + adapters → (joint position targets, raw action, Δφ^Δ).
+The raw action is an output too because the next observation contains it (previous action).
+Metadata lives inside the ONNX (`metadata_props`, one key per entry, JSON values) and beside it
+as `policy.json`, so a deployment script needs nothing else.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.common.atomic import atomic_dir
+from pipeline.common.errors import PipelineInputError
+
+ONNX_NAME = "policy.onnx"
+METADATA_NAME = "policy.json"
+HUB_FILES = ("config.json", "model.safetensors")
+INPUT_NAME = "obs"
+OUTPUT_NAMES = ("joint_targets", "action", "phase_rate_offset")
+PARITY_TOLERANCE = 1e-5
+OPSET = 17
+
+
+class DeployedPolicy(nn.Module):
+    """Wraps a policy module (stage 1 alone, or stage 1 + adapters) into the deployed interface.
+
+    `policy(obs)` returns the joint action a, or a tuple (a, Δφ^Δ) — the composed stage-2 module.
+    `normalizer`, when given, maps raw observations to the policy's input (else the policy
+    normalises itself). Joint targets = default pose + action_scale · a.
+    """
+
+    def __init__(self, policy: nn.Module, default_joint_pos, action_scale, normalizer: nn.Module | None = None):
+        super().__init__()
+        self.policy = policy
+        self.normalizer = normalizer
+        self.register_buffer("default_joint_pos", torch.as_tensor(np.asarray(default_joint_pos), dtype=torch.float32))
+        self.register_buffer("action_scale", torch.as_tensor(np.asarray(action_scale), dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor):
+        x = self.normalizer(obs) if self.normalizer is not None else obs
+        out = self.policy(x)
+        if isinstance(out, (tuple, list)):
+            action, phase_rate_offset = out[0], out[1]
+        else:
+            action, phase_rate_offset = out, torch.zeros_like(out[..., :1])
+        phase_rate_offset = phase_rate_offset.reshape(action.shape[0], 1)
+        targets = self.default_joint_pos + self.action_scale * action
+        return targets, action, phase_rate_offset
+
+
+def export_onnx(module: DeployedPolicy, obs_dim: int, path: str | Path, metadata: dict | None = None) -> Path:
+    """Writes the graph (batch dimension dynamic) with `metadata` in its metadata_props."""
+    import onnx
+
+    path = Path(path)
+    module = module.eval().cpu()
+    example = torch.zeros(1, obs_dim)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter announces its deprecation
+        torch.onnx.export(
+            module, (example,), str(tmp), dynamo=False, opset_version=OPSET,
+            input_names=[INPUT_NAME], output_names=list(OUTPUT_NAMES),
+            dynamic_axes={INPUT_NAME: {0: "batch"}} | {n: {0: "batch"} for n in OUTPUT_NAMES},
+        )
+    model = onnx.load(str(tmp))
+    for key, value in (metadata or {}).items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, json.dumps(value)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(tmp))
+    tmp.replace(path)
+    return path
+
+
+def onnx_session(path: str | Path):
+    import onnxruntime as ort
+
+    path = Path(path)
+    if not path.is_file():
+        raise PipelineInputError(path, None, "ONNX policy file not found (run the export stage first)")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1  # single-robot inference: threads only add latency
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def read_onnx_metadata(path: str | Path) -> dict:
+    meta = onnx_session(path).get_modelmeta().custom_metadata_map
+    return {k: json.loads(v) for k, v in meta.items()}
+
+
+def parity(module: DeployedPolicy, onnx_path: str | Path, obs_dim: int, num: int = 256, seed: int = 0) -> float:
+    """Max abs difference over all outputs between torch and onnxruntime on random observations."""
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(0.0, 2.0, size=(num, obs_dim)).astype(np.float32)
+    with torch.no_grad():
+        ref = [t.numpy() for t in module.eval().cpu()(torch.from_numpy(obs))]
+    got = onnx_session(onnx_path).run(list(OUTPUT_NAMES), {INPUT_NAME: obs})
+    return float(max(np.max(np.abs(a - b)) for a, b in zip(ref, got)))
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    folder: Path
+    onnx: Path
+    metadata: Path
+    parity_max_abs_diff: float
+
+
+def export_folder(module: DeployedPolicy, obs_dim: int, metadata: dict, out_dir: str | Path,
+                  source_dir: str | Path | None = None) -> ExportResult:
+    """The hub-format folder: config.json + model.safetensors (copied from the trained policy
+    folder `source_dir`), policy.onnx and policy.json. Fails (nothing written) if parity fails."""
+    out_dir = Path(out_dir)
+    if source_dir is not None:
+        missing = [n for n in HUB_FILES if not (Path(source_dir) / n).is_file()]
+        if missing:
+            raise PipelineInputError(source_dir, missing[0], "missing from the trained policy folder")
+    with atomic_dir(out_dir) as staging:
+        onnx_path = export_onnx(module, obs_dim, staging / ONNX_NAME, metadata)
+        diff = parity(module, onnx_path, obs_dim)
+        if not diff < PARITY_TOLERANCE:
+            raise RuntimeError(f"ONNX parity failed: max abs diff {diff:.3g} >= {PARITY_TOLERANCE}")
+        full = metadata | {"parity_max_abs_diff": diff, "onnx": ONNX_NAME}
+        (staging / METADATA_NAME).write_text(json.dumps(full, indent=1))
+        if source_dir is not None:
+            for name in HUB_FILES:
+                shutil.copy2(Path(source_dir) / name, staging / name)
+    return ExportResult(out_dir, out_dir / ONNX_NAME, out_dir / METADATA_NAME, diff)

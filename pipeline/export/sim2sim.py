@@ -1,0 +1,336 @@
+"""Sim2sim: a deployment-style single-robot MuJoCo loop on the exported policy alone.
+
+Uses only `policy.onnx`, `policy.json` and mujoco + numpy + onnxruntime — no training code, no
+torch — like a script on the robot's computer: it builds each observation itself from the
+metadata's layout, applies the joint targets through the PD actuators, advances the phase with
+the policy's Δφ^Δ and scores the episode with the evaluation's success definition (mean tracked-
+body world error ≤ 1 m at every keyframe, every keyframe reached). The scene is the G1 model from
+`pipeline.robot` (the vendored MJCF) with the gains and terrain taken from the metadata.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import mujoco
+import numpy as np
+
+from pipeline.common.errors import PipelineInputError
+
+ONNX_NAME = "policy.onnx"
+METADATA_NAME = "policy.json"
+
+
+class PsiOutOfRangeWarning(UserWarning):
+    """ψ outside the range the policy was trained on: it still runs, results are extrapolation."""
+
+
+# ------------------------------------------------------------------------------ loading
+def load_exported(policy_dir: str | Path, *, task: str | None = None, robot: str | None = None):
+    """(onnxruntime session, metadata) of an exported folder, checked against `task` / `robot`."""
+    import onnxruntime as ort
+
+    policy_dir = Path(policy_dir)
+    onnx_path, meta_path = policy_dir / ONNX_NAME, policy_dir / METADATA_NAME
+    if not policy_dir.is_dir():
+        raise PipelineInputError(policy_dir, None, "exported policy folder not found (run the export stage)")
+    if not onnx_path.is_file():
+        raise PipelineInputError(onnx_path, None, "ONNX policy file not found (run the export stage)")
+    if not meta_path.is_file():
+        raise PipelineInputError(meta_path, None, "policy metadata json not found beside the ONNX file")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as error:
+        raise PipelineInputError(meta_path, None, f"not valid JSON ({error})") from None
+    for key in ("robot", "task", "joint_names", "observation", "keyframes", "phase"):
+        if key not in meta:
+            raise PipelineInputError(meta_path, key, "missing from the policy metadata")
+    if task is not None and meta["task"] != task:
+        raise PipelineInputError(meta_path, "task", f"policy was trained for task {meta['task']!r}, not {task!r}")
+    if robot is not None and meta["robot"] != robot:
+        raise PipelineInputError(meta_path, "robot", f"policy is for robot {meta['robot']!r}, not {robot!r}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    try:
+        session = ort.InferenceSession(str(onnx_path), options, providers=["CPUExecutionProvider"])
+    except Exception as error:  # onnxruntime raises its own types for corrupt files
+        raise PipelineInputError(onnx_path, None, f"cannot be loaded by onnxruntime ({error})") from None
+    expected = meta["observation"]["dim"]
+    got = session.get_inputs()[0].shape[-1]
+    if isinstance(got, int) and got != expected:
+        raise PipelineInputError(onnx_path, "obs", f"ONNX input has {got} values, metadata layout says {expected}")
+    return session, meta
+
+
+def check_psi(meta: dict, psi: float, source: str = "psi") -> bool:
+    """Warns (does not fail) when ψ is outside the trained range; True when inside."""
+    lo, hi = meta.get("psi_limits", [-np.inf, np.inf])
+    if not lo - 1e-9 <= psi <= hi + 1e-9:
+        warnings.warn(f"{source}: ψ = {psi:g} is outside the trained range [{lo:g}, {hi:g}] of task "
+                      f"{meta.get('task')!r}; running anyway (extrapolation)", PsiOutOfRangeWarning, stacklevel=2)
+        return False
+    return True
+
+
+def _interp_grid(grid: list[float], values: np.ndarray, psi: float) -> np.ndarray:
+    """Linear interpolation of values (G, ...) on the ψ grid, clamped at its ends."""
+    grid = np.asarray(grid, dtype=np.float64)
+    if len(grid) == 1:
+        return values[0]
+    i = int(np.clip(np.searchsorted(grid, psi) - 1, 0, len(grid) - 2))
+    a = float(np.clip((psi - grid[i]) / (grid[i + 1] - grid[i]), 0.0, 1.0))
+    return (1 - a) * values[i] + a * values[i + 1]
+
+
+# ------------------------------------------------------------------------------ the scene
+def _terrain_adder(meta: dict, psi: float) -> Callable[[mujoco.MjSpec], None]:
+    terrain = meta.get("terrain") or {}
+    geoms = terrain.get("geoms") or []
+    layouts = terrain.get("layouts") or []
+    layout = {}
+    if layouts:
+        grid = np.asarray(terrain["psi_grid"])
+        i = int(np.argmin(np.abs(grid - psi)))
+        # pos/size interpolate linearly between the two nearest grid layouts
+        names = layouts[i].keys()
+        for name in names:
+            pos = _interp_grid(grid, np.array([l[name]["pos"] for l in layouts]), psi)
+            size = _interp_grid(grid, np.array([l[name]["size"] for l in layouts]), psi)
+            layout[name] = (pos, size)
+
+    def add(spec: mujoco.MjSpec) -> None:
+        if not geoms:
+            from pipeline.robot.g1 import add_flat_ground
+
+            add_flat_ground(spec)
+            return
+        for g in geoms:
+            pos, size = layout.get(g["name"], (g["pos"], g["size"]))
+            spec.worldbody.add_geom(name=g["name"] or "", type=mujoco.mjtGeom(g["type"]), size=list(size),
+                                    pos=list(pos), quat=g["quat"], friction=g["friction"], rgba=g["rgba"],
+                                    contype=1, conaffinity=1, condim=3)
+
+    return add
+
+
+def build_scene(meta: dict, psi: float, visual: bool = False) -> mujoco.MjModel:
+    """The G1 scene at this ψ, actuator gains set from the metadata (what the robot would run)."""
+    from pipeline.robot.g1 import build_spec
+
+    spec = build_spec(terrain=_terrain_adder(meta, psi), visual=visual)
+    if visual:
+        spec.visual.quality.offsamples = 0  # multisampling costs more than it shows at 640x480
+    model = spec.compile()
+    kp, kd = np.asarray(meta["kp"]), np.asarray(meta["kd"])
+    for j, name in enumerate(meta["joint_names"]):
+        act = model.actuator(name).id
+        model.actuator_gainprm[act, 0] = kp[j]
+        model.actuator_biasprm[act, 1:3] = [-kp[j], -kd[j]]
+    return model
+
+
+# ------------------------------------------------------------------------------ observations
+@dataclass
+class RobotState:
+    """What the robot's estimator gives, read from MuJoCo."""
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    joint_qpos: np.ndarray
+    joint_qvel: np.ndarray
+
+    def base_ang_vel(self) -> np.ndarray:
+        return self.data.qvel[3:6].copy()  # free joint: body-frame angular velocity
+
+    def projected_gravity(self) -> np.ndarray:
+        w, x, y, z = self.data.qpos[3:7]
+        # R^T @ (0, 0, -1), written out for the quaternion (w, x, y, z)
+        return -np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+
+    def joint_pos(self) -> np.ndarray:
+        return self.data.qpos[self.joint_qpos].copy()
+
+    def joint_vel(self) -> np.ndarray:
+        return self.data.qvel[self.joint_qvel].copy()
+
+
+class ObservationBuilder:
+    """One step's observation from the metadata's term list, and the oldest-first history."""
+
+    def __init__(self, layout: dict, control_rate_hz: float):
+        self.terms = layout["terms"]
+        self.history = int(layout["history"])
+        self.step_dim = int(layout["step_dim"])
+        if layout.get("history_order", "oldest_first") != "oldest_first":
+            raise PipelineInputError(METADATA_NAME, "observation.history_order",
+                                     f"unsupported {layout.get('history_order')!r}")
+        known = {"base_ang_vel", "projected_gravity", "joint_pos", "joint_vel", "last_action", "phase",
+                 "psi", "odometry"}
+        for term in self.terms:
+            if term["name"] not in known:
+                raise PipelineInputError(METADATA_NAME, "observation.terms",
+                                         f"term {term['name']!r} is unknown to this deployment loop")
+        self.control_rate_hz = control_rate_hz
+        self.buffer: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.buffer = None
+
+    def step(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        parts = []
+        for term in self.terms:
+            v = np.asarray(values[term["name"]], dtype=np.float64).reshape(-1)
+            if "offset" in term:
+                v = v - np.asarray(term["offset"])
+            parts.append(v * np.asarray(term.get("scale", 1.0)))
+        frame = np.concatenate(parts).astype(np.float32)
+        if self.buffer is None:
+            self.buffer = np.tile(frame, (self.history, 1))
+        else:
+            self.buffer = np.concatenate([self.buffer[1:], frame[None]], axis=0)
+        return self.buffer.reshape(1, -1)
+
+
+# ------------------------------------------------------------------------------ the loop
+@dataclass
+class EpisodeResult:
+    psi: float
+    success: bool
+    keyframe_errors: list[float]  # body-mean world error (m) at each keyframe reached
+    steps: int
+    end: str  # "done" (phase reached 1), "tilt", "height", "keyframe_error", "max_steps"
+    phase: list[float] = field(default_factory=list)
+    phase_rate_offset: list[float] = field(default_factory=list)
+
+
+class Sim2Sim:
+    def __init__(self, policy_dir: str | Path, *, task: str | None = None, robot: str | None = None):
+        self.session, self.meta = load_exported(policy_dir, task=task, robot=robot)
+        m = self.meta
+        self.control_dt = float(m["control_dt"])
+        self.decimation = int(round(m["control_dt"] / m["sim_dt"]))
+        self.default_joint_pos = np.asarray(m["default_joint_pos"])
+        self.phase_rate = float(m["phase"]["rate"])
+        self.offset_bounds = m["phase"]["offset_bounds"]
+        kf = m["keyframes"]
+        self.keyframe_phases = np.asarray(kf["phases"])
+        self.keyframe_body_pos = np.asarray(kf["body_pos"])  # (K, B, 3)
+        self.keyframe_grid = kf["psi_grid"]
+        self.keyframe_offsets = np.asarray(kf["offsets"])  # (G, K, 3)
+        self.obs = ObservationBuilder(m["observation"], 1.0 / self.control_dt)
+        self.threshold = float(m.get("success_threshold_m", 1.0))
+        self.output_names = [o.name for o in self.session.get_outputs()]
+        self.input_name = self.session.get_inputs()[0].name
+
+    def keyframe_targets(self, psi: float) -> np.ndarray:
+        offsets = _interp_grid(self.keyframe_grid, self.keyframe_offsets, psi)  # (K, 3)
+        return self.keyframe_body_pos + offsets[:, None, :]
+
+    def policy(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        outs = dict(zip(self.output_names, self.session.run(self.output_names, {self.input_name: obs})))
+        return outs["joint_targets"][0], outs["action"][0], float(outs["phase_rate_offset"].reshape(-1)[0])
+
+    def run_episode(self, psi: float, *, max_steps: int | None = None,
+                    on_step: Callable[[mujoco.MjModel, mujoco.MjData, dict], None] | None = None,
+                    visual: bool = False) -> EpisodeResult:
+        m = self.meta
+        check_psi(m, psi)
+        model = build_scene(m, psi, visual=visual)
+        data = mujoco.MjData(model)
+        state = RobotState(
+            model, data,
+            np.array([model.jnt_qposadr[model.joint(n).id] for n in m["joint_names"]]),
+            np.array([model.jnt_dofadr[model.joint(n).id] for n in m["joint_names"]]),
+        )
+        actuators = np.array([model.actuator(n).id for n in m["joint_names"]])
+        sites = np.array([model.site(n).id for n in m["tracked_site_names"]])
+        data.qpos[:] = m["initial_state"]["qpos"]
+        data.qvel[:] = m["initial_state"]["qvel"]
+        mujoco.mj_forward(model, data)
+
+        targets = self.keyframe_targets(psi)
+        term = m.get("terminations") or {}
+        start_pos = data.qpos[0:3].copy()
+        w, x, y, z = data.qpos[3:7]
+        start_yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        odo_every = self._odometry_period()
+        odometry = np.zeros(3)
+        last_action = np.zeros(len(m["joint_names"]))
+        phase, next_kf = 0.0, 0
+        errors: list[float] = []
+        phases, offsets = [], []
+        limit = max_steps or int(np.ceil(4.0 / self.phase_rate))  # phase may slow down to 0.25×
+        self.obs.reset()
+        end = "max_steps"
+        step = 0
+        for step in range(1, limit + 1):
+            if (step - 1) % odo_every == 0:
+                odometry = _rotate_z(data.qpos[0:3] - start_pos, -start_yaw)
+            obs = self.obs.step({
+                "base_ang_vel": state.base_ang_vel(), "projected_gravity": state.projected_gravity(),
+                "joint_pos": state.joint_pos(), "joint_vel": state.joint_vel(), "last_action": last_action,
+                "phase": np.array([phase]), "psi": np.array([psi]), "odometry": odometry,
+            })
+            joint_targets, last_action, dphi = self.policy(obs)
+            dphi = float(np.clip(dphi, *self.offset_bounds))
+            data.ctrl[actuators] = joint_targets
+            for _ in range(self.decimation):
+                mujoco.mj_step(model, data)
+            new_phase = min(phase + self.phase_rate + dphi, 1.0)
+            phases.append(new_phase)
+            offsets.append(dphi)
+            info = {"phase": new_phase, "psi": psi, "keyframe_targets": targets, "step": step}
+            while next_kf < len(self.keyframe_phases) and phase < self.keyframe_phases[next_kf] <= new_phase + 1e-12:
+                err = np.linalg.norm(data.site_xpos[sites] - targets[next_kf], axis=-1)
+                errors.append(float(err.mean()))
+                limit_err = term.get("keyframe_body_error_m")
+                next_kf += 1
+                if limit_err is not None and err.max() > limit_err:
+                    end = "keyframe_error"
+            phase = new_phase
+            if on_step is not None:
+                on_step(model, data, info)
+            if end == "keyframe_error":
+                break
+            gravity = state.projected_gravity()
+            if np.linalg.norm(gravity[:2]) > term.get("max_tilt", np.inf):
+                end = "tilt"
+                break
+            if term.get("min_base_height") is not None and data.qpos[2] < term["min_base_height"]:
+                end = "height"
+                break
+            if phase >= 1.0:
+                end = "done"
+                break
+        success = (len(errors) == len(self.keyframe_phases) and end == "done"
+                   and all(e <= self.threshold for e in errors))
+        return EpisodeResult(float(psi), bool(success), errors, step, end, phases, offsets)
+
+    def _odometry_period(self) -> int:
+        for term in self.meta["observation"]["terms"]:
+            if term["name"] == "odometry" and term.get("rate_hz"):
+                return max(1, int(round(1.0 / (self.control_dt * term["rate_hz"]))))
+        return 1
+
+
+def _rotate_z(v: np.ndarray, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+
+
+def run_sim2sim(policy_dir: str | Path, psi_values, *, task: str | None = None,
+                robot: str | None = None, max_steps: int | None = None) -> dict:
+    """Episodes at the given ψ values; returns the success rate (%) and per-episode results."""
+    runner = Sim2Sim(policy_dir, task=task, robot=robot)
+    results = [runner.run_episode(float(psi), max_steps=max_steps) for psi in psi_values]
+    return {
+        "task": runner.meta["task"],
+        "variant": runner.meta.get("variant"),
+        "success": 100.0 * float(np.mean([r.success for r in results])) if results else float("nan"),
+        "episodes": [{"psi": r.psi, "success": r.success, "end": r.end, "steps": r.steps,
+                      "keyframe_errors": r.keyframe_errors} for r in results],
+    }
