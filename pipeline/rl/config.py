@@ -1,0 +1,241 @@
+"""Typed training configuration (`params.yaml` -> `train:`), two size profiles and the variants.
+
+`TrainConfig.from_dict(raw)` starts from the profile named in `raw["profile"]` (default `cpu`) and
+overrides any field given; unknown keys and unknown variants raise `PipelineInputError` naming the key.
+
+Profiles:
+  * `gpu`: the paper's appendix (4096 envs, 75 steps/iteration, 5 epochs, [512, 256, 128] ELU, ...).
+  * `cpu`: the same algorithm sized so one stage takes a few minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from pipeline.common.errors import PipelineInputError
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What a method (or ablation) of the paper's main table trains on and how.
+
+    reference: which TrackingData the env tracks: "edit" (D_edit, keyframe targets),
+               "rule" (D_rule, rule-edited dense reference) or "original" (the unedited motion).
+    keyframe_rewards: sparse keyframe rewards (AdaMimic) vs dense global tracking every step (DeepMimic).
+    stage2: train the phase and tracking adapters after stage 1.
+    freeze_stage1: keep the stage-1 policy fixed in stage 2 (False: fine-tune it with the adapters).
+    adaptive_phase_stage1: the stage-1 policy also outputs the phase-rate offset Δφ^Δ.
+    amp: "none", "style" (discriminator on joint windows) or "mimic" (discriminator also sees the phase).
+    """
+
+    name: str
+    reference: str
+    keyframe_rewards: bool
+    stage2: bool
+    freeze_stage1: bool = True
+    adaptive_phase_stage1: bool = False
+    amp: str = "none"
+
+
+VARIANTS: dict[str, Variant] = {
+    v.name: v
+    for v in (
+        Variant("adamimic", "edit", True, stage2=True),
+        Variant("adamimic_stage1", "edit", True, stage2=False),
+        Variant("adamimic_stage1_dphi", "edit", True, stage2=False, adaptive_phase_stage1=True),
+        Variant("adamimic_nofreeze", "edit", True, stage2=True, freeze_stage1=False),
+        Variant("adamimic_dense", "rule", False, stage2=True),
+        Variant("deepmimic_noadapt", "original", False, stage2=False),
+        Variant("deepmimic_adapt", "rule", False, stage2=False),
+        Variant("deepmimic_adapt_dphi", "rule", False, stage2=False, adaptive_phase_stage1=True),
+        Variant("amp_style", "edit", True, stage2=False, amp="style"),
+        Variant("amp_mimic", "edit", True, stage2=False, amp="mimic"),
+    )
+}
+
+
+def get_variant(name: str, where: str = "train") -> Variant:
+    if name not in VARIANTS:
+        raise PipelineInputError(where, "variant", f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
+    return VARIANTS[name]
+
+
+@dataclass
+class NetworkConfig:
+    actor_hidden: list[int] = field(default_factory=lambda: [512, 256, 128])
+    critic_hidden: list[int] = field(default_factory=lambda: [512, 256, 128])
+    activation: str = "elu"
+    init_log_std: float = 0.0  # exp(0) = 1: std of the Gaussian over normalised actions
+    # Stage-2 adapters (each its own MLP); a^Δ's last layer starts at zero so stage 2 starts at stage 1.
+    adapter_hidden: list[int] = field(default_factory=lambda: [256, 128])
+    adapter_init_log_std: float = -1.0
+
+
+@dataclass
+class PPOConfig:
+    num_envs: int = 4096
+    steps_per_iteration: int = 75
+    epochs: int = 5
+    minibatches: int = 4
+    clip: float = 0.2
+    entropy_coef: float = 0.01
+    value_coef: float = 1.0
+    value_clip: bool = True
+    learning_rate: float = 1e-3
+    adaptive_lr: bool = True
+    kl_target: float = 0.01
+    lr_min: float = 1e-5
+    lr_max: float = 1e-2
+    max_grad_norm: float = 1.0
+    gamma_sparse: float = 1.0
+    gamma_dense: float = 0.99
+    lam: float = 0.95
+    adv_weight_sparse: float = 1.0
+    adv_weight_dense: float = 0.5
+    normalize_obs: bool = True
+    # L2C2 (Kobayashi 2022): penalise output change between an observation and a random point on the
+    # segment to the next observation. Stage 1 only, as in the paper.
+    l2c2_actor: float = 1.0
+    l2c2_critic: float = 0.1
+
+
+@dataclass
+class AMPConfig:
+    window: int = 5  # joint-position frames per discriminator sample
+    style_weight: float = 0.1
+    task_weight: float = 0.9
+    hidden: list[int] = field(default_factory=lambda: [256, 128])
+    learning_rate: float = 1e-4
+    grad_penalty: float = 5.0
+    batch_size: int = 4096
+
+
+@dataclass
+class TrainConfig:
+    profile: str = "cpu"
+    variant: str = "adamimic"
+    seed: int = 0
+    device: str = "cpu"
+    backend: str = "cpu"
+    iterations_stage1: int = 300
+    iterations_stage2: int = 150
+    save_interval: int = 25
+    keep_checkpoints: int = 2
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    amp: AMPConfig = field(default_factory=AMPConfig)
+
+    @property
+    def variant_spec(self) -> Variant:
+        return get_variant(self.variant)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, raw: dict | None, where: str = "train") -> "TrainConfig":
+        raw = dict(raw or {})
+        profile = raw.get("profile", "cpu")
+        if profile not in PROFILES:
+            raise PipelineInputError(where, "profile", f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
+        base = PROFILES[profile]().to_dict()
+        cfg = _build(cls, _merge(base, raw, where), where)
+        get_variant(cfg.variant, where)
+        _validate(cfg, where)
+        return cfg
+
+
+def _merge(base: dict, override: dict, where: str) -> dict:
+    out = dict(base)
+    for key, value in override.items():
+        if key not in base:
+            raise PipelineInputError(where, key, f"unknown key; known: {', '.join(base)}")
+        if isinstance(base[key], dict):
+            if not isinstance(value, dict):
+                raise PipelineInputError(where, key, f"expected a mapping, got {type(value).__name__}")
+            out[key] = _merge(base[key], value, f"{where}.{key}")
+        else:
+            out[key] = value
+    return out
+
+
+def _build(cls, raw: dict, where: str):
+    kwargs = {}
+    for f in fields(cls):
+        value = raw[f.name]
+        sub = _SUBCONFIGS.get(f.name) if cls is TrainConfig else None
+        if sub is not None:
+            kwargs[f.name] = _build(sub, value, f"{where}.{f.name}")
+            continue
+        default = getattr(cls(), f.name)
+        try:
+            if isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise TypeError
+            elif isinstance(default, int):
+                if isinstance(value, bool) or int(value) != value:
+                    raise TypeError
+                value = int(value)
+            elif isinstance(default, float):
+                value = float(value)
+            elif isinstance(default, list):
+                value = [int(v) for v in value]
+            elif isinstance(default, str):
+                if not isinstance(value, str):
+                    raise TypeError
+        except (TypeError, ValueError):
+            raise PipelineInputError(where, f.name, f"expected {type(default).__name__}, got {value!r}") from None
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+_SUBCONFIGS = {"ppo": PPOConfig, "network": NetworkConfig, "amp": AMPConfig}
+
+
+def _validate(cfg: TrainConfig, where: str) -> None:
+    p = cfg.ppo
+    checks = [
+        (p.num_envs > 0, "ppo.num_envs", "must be > 0"),
+        (p.steps_per_iteration > 0, "ppo.steps_per_iteration", "must be > 0"),
+        (p.epochs > 0, "ppo.epochs", "must be > 0"),
+        (0 < p.minibatches <= p.num_envs * p.steps_per_iteration, "ppo.minibatches", "must be in [1, envs*steps]"),
+        (0.0 < p.gamma_sparse <= 1.0 and 0.0 < p.gamma_dense <= 1.0, "ppo.gamma_*", "must be in (0, 1]"),
+        (0.0 <= p.lam <= 1.0, "ppo.lam", "must be in [0, 1]"),
+        (p.learning_rate > 0, "ppo.learning_rate", "must be > 0"),
+        (cfg.iterations_stage1 >= 0 and cfg.iterations_stage2 >= 0, "iterations_*", "must be >= 0"),
+        (cfg.save_interval > 0, "save_interval", "must be > 0"),
+        (cfg.keep_checkpoints >= 1, "keep_checkpoints", "must be >= 1"),
+        (cfg.network.activation in ACTIVATIONS, "network.activation", f"one of {sorted(ACTIVATIONS)}"),
+        (cfg.amp.window >= 2, "amp.window", "must be >= 2"),
+        (all(h > 0 for h in cfg.network.actor_hidden + cfg.network.critic_hidden), "network", "layer sizes > 0"),
+    ]
+    for ok, key, problem in checks:
+        if not ok:
+            raise PipelineInputError(where, key, problem)
+
+
+ACTIVATIONS = {"elu", "relu", "tanh", "silu"}
+
+
+def gpu_profile() -> TrainConfig:
+    """The paper's appendix values."""
+    return TrainConfig(profile="gpu", device="cuda", backend="warp", iterations_stage1=3000,
+                       iterations_stage2=1500, save_interval=100)
+
+
+def cpu_profile() -> TrainConfig:
+    """Same algorithm for 2 cores: fewer envs, smaller nets, a few minutes per stage."""
+    return TrainConfig(
+        profile="cpu",
+        iterations_stage1=300,
+        iterations_stage2=150,
+        save_interval=25,
+        ppo=PPOConfig(num_envs=192, steps_per_iteration=24, epochs=5, minibatches=4),
+        network=NetworkConfig(actor_hidden=[256, 128, 64], critic_hidden=[256, 128, 64], adapter_hidden=[128, 64]),
+        amp=AMPConfig(hidden=[128, 64], batch_size=1024),
+    )
+
+
+PROFILES = {"cpu": cpu_profile, "gpu": gpu_profile}

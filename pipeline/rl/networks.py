@@ -1,0 +1,138 @@
+"""Networks: MLPs, an empirical observation normaliser, the stage-1 Gaussian actor, the double critic.
+
+Every policy module maps an actor observation to a deterministic (joint action, Δφ^Δ) in `forward`
+so that the export code sees one plain `nn.Module` whatever the stage. Training goes through
+`distribution(obs)` over "raw" outputs (the Gaussian's sample space) and `to_env(obs, raw)`, which
+turns a raw sample into what the environment receives.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+_ACT = {"elu": nn.ELU, "relu": nn.ReLU, "tanh": nn.Tanh, "silu": nn.SiLU}
+
+
+def mlp(in_dim: int, hidden: list[int], out_dim: int, activation: str = "elu", out_gain: float = 1.0) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    last = in_dim
+    for width in hidden:
+        layers += [nn.Linear(last, width), _ACT[activation]()]
+        last = width
+    head = nn.Linear(last, out_dim)
+    # A small last layer keeps initial actions near the default pose and values near zero.
+    nn.init.orthogonal_(head.weight, gain=out_gain)
+    nn.init.zeros_(head.bias)
+    layers.append(head)
+    return nn.Sequential(*layers)
+
+
+class EmpiricalNormalizer(nn.Module):
+    """Running mean/variance of observations (parallel Welford merge); buffers travel with the policy."""
+
+    def __init__(self, dim: int, eps: float = 1e-2, clip: float = 10.0, enabled: bool = True):
+        super().__init__()
+        self.eps, self.clip, self.enabled = eps, clip, enabled
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("var", torch.ones(dim))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        if not self.enabled:
+            return
+        x = x.reshape(-1, x.shape[-1]).to(self.mean.dtype)
+        n = x.shape[0]
+        batch_mean = x.mean(0)
+        batch_var = x.var(0, unbiased=False)
+        total = self.count + n
+        delta = batch_mean - self.mean
+        frac = float(n / total)
+        self.mean += delta * frac
+        self.var.copy_(self.var * (1 - frac) + batch_var * frac + delta**2 * frac * (1 - frac))
+        self.count.copy_(total)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.enabled:
+            return x
+        return ((x - self.mean) / torch.sqrt(self.var + self.eps)).clamp(-self.clip, self.clip)
+
+
+class PhaseBound(nn.Module):
+    """tanh-affine squashing of a raw output into Δφ^Δ ∈ [−0.75Δφ, +Δφ]; raw 0 maps to 0."""
+
+    def __init__(self, phase_rate: float, low_fraction: float = 0.75):
+        super().__init__()
+        self.low, self.high = -low_fraction * phase_rate, phase_rate
+        # Shift so that raw = 0 lands on Δφ^Δ = 0: tanh(shift) = -(high + low) / (high - low).
+        self.shift = math.atanh(-(self.high + self.low) / (self.high - self.low))
+
+    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+        unit = (torch.tanh(raw + self.shift) + 1.0) * 0.5
+        return self.low + unit * (self.high - self.low)
+
+
+class Stage1Policy(nn.Module):
+    """Gaussian actor with a state-independent log-std. With `adaptive_phase` one more output is the
+    phase-rate offset (variants *_dphi); otherwise Δφ^Δ is always 0."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: list[int], activation: str = "elu",
+                 init_log_std: float = 0.0, adaptive_phase: bool = False, phase_rate: float = 0.01,
+                 normalize_obs: bool = True):
+        super().__init__()
+        self.obs_dim, self.action_dim, self.adaptive_phase = obs_dim, action_dim, adaptive_phase
+        self.raw_dim = action_dim + int(adaptive_phase)
+        self.normalizer = EmpiricalNormalizer(obs_dim, enabled=normalize_obs)
+        self.body = mlp(obs_dim, hidden, self.raw_dim, activation, out_gain=0.01)
+        self.log_std = nn.Parameter(torch.full((self.raw_dim,), float(init_log_std)))
+        self.phase_bound = PhaseBound(phase_rate)
+
+    def raw_mean(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.body(self.normalizer(obs))
+
+    def distribution(self, obs: torch.Tensor) -> torch.distributions.Normal:
+        mean = self.raw_mean(obs)
+        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
+
+    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        dist = self.distribution(obs)
+        raw = dist.sample()
+        return raw, dist.log_prob(raw).sum(-1)
+
+    def log_prob_entropy(self, obs: torch.Tensor, raw: torch.Tensor):
+        dist = self.distribution(obs)
+        return dist.log_prob(raw).sum(-1), dist.entropy().sum(-1), dist.mean, dist.stddev
+
+    def to_env(self, obs: torch.Tensor, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        action = raw[:, : self.action_dim]
+        if self.adaptive_phase:
+            return action, self.phase_bound(raw[:, -1])
+        return action, torch.zeros_like(raw[:, 0])
+
+    def update_normalizers(self, obs: torch.Tensor) -> None:
+        self.normalizer.update(obs)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Deterministic deployable policy: (joint action (N, A), Δφ^Δ (N,))."""
+        return self.to_env(obs, self.raw_mean(obs))
+
+
+class DoubleCritic(nn.Module):
+    """Two value networks, one per reward group: sparse keyframe rewards and dense tracking rewards
+    live on very different scales and horizons, so one network for both would blur them."""
+
+    def __init__(self, obs_dim: int, hidden: list[int], activation: str = "elu", normalize_obs: bool = True):
+        super().__init__()
+        self.normalizer = EmpiricalNormalizer(obs_dim, enabled=normalize_obs)
+        self.sparse = mlp(obs_dim, hidden, 1, activation)
+        self.dense = mlp(obs_dim, hidden, 1, activation)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.normalizer(obs)
+        return self.sparse(x).squeeze(-1), self.dense(x).squeeze(-1)
+
+    def update_normalizers(self, obs: torch.Tensor) -> None:
+        self.normalizer.update(obs)

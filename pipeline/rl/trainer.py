@@ -1,0 +1,413 @@
+"""The training loop for stage 1 and stage 2 against the `TrackingEnv` contract (docs/INTERFACES.md).
+
+    train_stage1(data, env_cfg, cfg, run_dir)                     -> metrics dict, policy in run_dir/policy
+    train_stage2(data, env_cfg, cfg, run_dir, stage1_dir=...)     -> same, adapters on the frozen stage 1
+    train(data, env_cfg, cfg, run_dir)                            -> both stages as the variant asks
+    Trainer(env, policy, critic, cfg, run_dir, ...).run(iters)     -> the loop itself, for any env
+
+Each iteration: collect `steps_per_iteration` steps from every env, run the PPO update, update the
+termination curriculum, log, and every `save_interval` iterations write an atomic checkpoint.
+
+Resuming is bit-exact: a checkpoint holds the parameters, optimiser, RNG states and (when the env
+offers `state_dict()`/`load_state_dict()`) the env state and current observation. Envs without
+those are reset at every checkpoint boundary, in the uninterrupted run as in the resumed one, so
+both see the same next iteration as long as the env draws its randomness from torch's global RNG.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pipeline.common.atomic import atomic_file, write_text_atomic
+from pipeline.common.errors import PipelineInputError
+from pipeline.rl.amp import AMPDiscriminator, JointWindow, reference_windows
+from pipeline.rl.checkpoint import CheckpointManager, check_compatible, load_policy, read_meta, rng_state, save_policy, set_rng_state
+from pipeline.rl.config import TrainConfig, Variant
+from pipeline.rl.networks import DoubleCritic, Stage1Policy
+from pipeline.rl.ppo import GROUPS, PPO, Rollout
+from pipeline.rl.stage2 import Stage2Policy
+
+SUCCESS_ERROR_M = 1.0  # issue 7: an episode fails if the mean body error exceeds 1 m at a keyframe
+CURRICULUM_HOOKS = ("update_termination_curriculum", "update_curriculum", "set_training_progress")
+
+
+class EpisodeStats:
+    """Per-env returns and success flags; finished episodes go into a sliding window."""
+
+    def __init__(self, num_envs: int, device, window: int = 200):
+        self.returns = {g: torch.zeros(num_envs, device=device) for g in GROUPS}
+        self.failed = torch.zeros(num_envs, dtype=torch.bool, device=device)
+        self.window = window
+        self.finished: list[dict] = []
+
+    def step(self, rewards, terminated, truncated, info) -> None:
+        for g in GROUPS:
+            self.returns[g] += rewards[g]
+        crossed, err = info.get("keyframe_crossed"), info.get("body_pos_error_w")
+        if crossed is not None and err is not None:
+            self.failed |= crossed.bool() & (err.mean(-1) > SUCCESS_ERROR_M)
+        self.failed |= terminated.bool()
+        done = (terminated | truncated).nonzero().flatten()
+        for i in done.tolist():
+            self.finished.append({"success": float(not self.failed[i]), **{g: float(self.returns[g][i]) for g in GROUPS}})
+        self.finished = self.finished[-self.window :]
+        for g in GROUPS:
+            self.returns[g][done] = 0.0
+        self.failed[done] = False
+
+    def reset(self) -> None:
+        for g in GROUPS:
+            self.returns[g].zero_()
+        self.failed.zero_()
+
+    def summary(self) -> dict[str, float]:
+        if not self.finished:
+            return {}
+        return {"success_rate": float(np.mean([e["success"] for e in self.finished])),
+                "return_sparse": float(np.mean([e["sparse"] for e in self.finished])),
+                "return_dense": float(np.mean([e["dense"] for e in self.finished])),
+                "episodes": len(self.finished)}
+
+    def state_dict(self) -> dict:
+        return {"returns": {g: v.clone() for g, v in self.returns.items()}, "failed": self.failed.clone(), "finished": list(self.finished)}
+
+    def load_state_dict(self, s: dict) -> None:
+        for g in GROUPS:
+            self.returns[g].copy_(s["returns"][g])
+        self.failed.copy_(s["failed"])
+        self.finished = list(s["finished"])
+
+
+class Trainer:
+    def __init__(self, env, policy, critic, cfg: TrainConfig, run_dir: str | Path, *, stage: int, meta: dict,
+                 l2c2: bool = False, amp: AMPDiscriminator | None = None, amp_reference: torch.Tensor | None = None,
+                 use_phase_offset: bool = False, tensorboard: bool = True, progress: bool = True, log=print):
+        self.env, self.policy, self.critic, self.cfg = env, policy, critic, cfg
+        self.run_dir = Path(run_dir)
+        self.stage, self.meta, self.log = stage, meta, log
+        self.device = torch.device(cfg.device if cfg.device != "cuda" or torch.cuda.is_available() else "cpu")
+        self.ppo = PPO(policy, critic, cfg.ppo, l2c2=l2c2)
+        self.amp, self.amp_reference = amp, amp_reference
+        self.use_phase_offset = use_phase_offset
+        self.checkpoints = CheckpointManager(self.run_dir, cfg.keep_checkpoints)
+        self.stats = EpisodeStats(env.num_envs, self.device)
+        self.history: list[dict] = []
+        self.tensorboard, self.progress = tensorboard, progress
+        self.joint_window = None
+        if amp is not None:
+            self.joint_window = JointWindow(env.num_envs, env.action_dim, cfg.amp.window, self.device)
+
+    # -- env helpers ------------------------------------------------------------------------
+    def _env_has_state(self) -> bool:
+        return hasattr(self.env, "state_dict") and hasattr(self.env, "load_state_dict")
+
+    def _curriculum(self, progress: float) -> None:
+        for name in CURRICULUM_HOOKS:
+            hook = getattr(self.env, name, None)
+            if callable(hook):
+                hook(progress)
+                return
+
+    def _joint_pos(self, info: dict) -> torch.Tensor:
+        if "joint_pos" in info:
+            return info["joint_pos"]
+        if hasattr(self.env, "joint_pos"):
+            return self.env.joint_pos
+        raise RuntimeError("AMP needs the robot's joint positions: the env gives neither info['joint_pos'] nor .joint_pos")
+
+    # -- one iteration ----------------------------------------------------------------------
+    def collect(self, obs: dict) -> tuple[Rollout, dict, dict]:
+        steps, n = self.cfg.ppo.steps_per_iteration, self.env.num_envs
+        raw_dim = self.policy.raw_dim
+        ro = Rollout.allocate(steps, n, obs["actor"].shape[-1], obs["critic"].shape[-1], raw_dim, self.device)
+        amp_windows = []
+        for t in range(steps):
+            rec = self.ppo.act(obs["actor"], obs["critic"])
+            offset = rec["phase_offset"] if self.use_phase_offset else None
+            next_obs, rewards, terminated, truncated, info = self.env.step(rec["action"], offset)
+            terminated, truncated = terminated.bool(), truncated.bool()
+            self.stats.step(rewards, terminated, truncated, info)
+            if self.amp is not None:
+                self.joint_window.push(self._joint_pos(info))
+                windows = self.joint_window.flat(info.get("phase") if self.cfg.variant_spec.amp == "mimic" else None)
+                amp_windows.append(windows)
+                rewards = self.amp.combine(rewards, self.amp.style_reward(windows))
+                self.joint_window.filled &= ~(terminated | truncated)
+            ro.actor_obs[t], ro.critic_obs[t] = obs["actor"], obs["critic"]
+            ro.raw_actions[t], ro.log_probs[t] = rec["raw"], rec["log_prob"]
+            ro.means[t], ro.stds[t] = rec["mean"], rec["std"]
+            for g in GROUPS:
+                ro.values[g][t] = rec[g]
+                ro.rewards[g][t] = rewards[g]
+            ro.terminated[t], ro.truncated[t] = terminated, truncated
+            if truncated.any():
+                # Bootstrap from the state the timeout reached when the env reports it (before its
+                # auto-reset); otherwise the value of the state the last action was taken in.
+                final = info.get("final_obs")
+                v = self.ppo.values(final["critic"]) if final is not None else {g: rec[g] for g in GROUPS}
+                for g in GROUPS:
+                    ro.timeout_values[g][t] = v[g]
+            obs = next_obs
+        ro.last_values = self.ppo.values(obs["critic"])
+        amp_batch = torch.cat(amp_windows) if amp_windows else None
+        return ro, obs, {"amp_windows": amp_batch}
+
+    def _boundary(self, iteration: int, obs: dict | None) -> dict:
+        """At checkpoint boundaries of envs without state, restart episodes (see module docstring)."""
+        if obs is None or (not self._env_has_state() and iteration % self.cfg.save_interval == 0):
+            self.stats.reset()
+            if self.joint_window is not None:
+                self.joint_window.filled.zero_()
+            return self.env.reset()
+        return obs
+
+    # -- the loop ---------------------------------------------------------------------------
+    def run(self, iterations: int, resume: bool = False) -> dict:
+        start, obs = 0, None
+        if resume:
+            start, obs = self._restore()
+        writer = self._writer()
+        t0 = time.time()
+        bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=f"stage {self.stage}",
+                   disable=not self.progress, mininterval=2.0, file=sys.stderr)
+        for it in bar:
+            obs = self._boundary(it, obs)
+            self._curriculum(it / max(iterations, 1))
+            self.policy.train()
+            rollout, obs, extra = self.collect(obs)
+            stats = self.ppo.update(rollout)
+            if self.amp is not None:
+                stats.update(self.amp.update(self.amp_reference, extra["amp_windows"]))
+            stats.update(self.stats.summary())
+            stats.update({"iteration": it + 1, "env_steps": (it + 1) * self.env.num_envs * self.cfg.ppo.steps_per_iteration,
+                          "reward_sparse": rollout.rewards["sparse"].mean().item(),
+                          "reward_dense": rollout.rewards["dense"].mean().item(),
+                          "seconds": time.time() - t0})
+            self.history.append(stats)
+            if writer is not None:
+                for k, v in stats.items():
+                    if isinstance(v, (int, float)) and math.isfinite(v):
+                        writer.add_scalar(f"stage{self.stage}/{k}", v, it + 1)
+            bar.set_postfix(success=f"{stats.get('success_rate', float('nan')):.2f}", ret=f"{stats.get('return_sparse', float('nan')):.1f}")
+            if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations:
+                self._save(it + 1, obs)
+        bar.close()
+        if writer is not None:
+            writer.close()
+        return self._finish(iterations)
+
+    # -- saving / resuming ------------------------------------------------------------------
+    def _training_state(self, obs: dict) -> dict:
+        state = {"ppo": self.ppo.state_dict(), "rng": rng_state(), "history": self.history,
+                 "stats": self.stats.state_dict(), "stage": self.stage}
+        if self._env_has_state():
+            state["env"] = self.env.state_dict()
+            state["obs"] = {k: v.clone() for k, v in obs.items()}
+        if self.amp is not None:
+            state["amp"] = {"net": self.amp.state_dict(), "optimizer": self.amp.optimizer.state_dict(),
+                            "window": self.joint_window.frames.clone(), "filled": self.joint_window.filled.clone()}
+        return state
+
+    def _save(self, iteration: int, obs: dict) -> None:
+        self.checkpoints.save(iteration, self.policy, self.critic, self.meta, self._training_state(obs))
+
+    def _restore(self) -> tuple[int, dict | None]:
+        path = self.checkpoints.latest()
+        if path is None:
+            self.log(f"[train] no checkpoint under {self.checkpoints.root}: starting from scratch")
+            return 0, None
+        meta = read_meta(path)
+        check_compatible(meta, self.meta, path)
+        if int(meta.get("stage", self.stage)) != self.stage:
+            raise PipelineInputError(path, "stage", f"checkpoint is stage {meta.get('stage')}, this run is stage {self.stage}")
+        policy, critic, _ = load_policy(path, with_critic=True)
+        self.policy.load_state_dict(policy.state_dict())
+        self.critic.load_state_dict(critic.state_dict())
+        state = CheckpointManager.load_state(path)
+        self.ppo.load_state_dict(state["ppo"])
+        self.history = list(state["history"])
+        self.stats.load_state_dict(state["stats"])
+        obs = None
+        if "env" in state and self._env_has_state():
+            self.env.load_state_dict(state["env"])
+            obs = state["obs"]
+        if self.amp is not None and "amp" in state:
+            self.amp.load_state_dict(state["amp"]["net"])
+            self.amp.optimizer.load_state_dict(state["amp"]["optimizer"])
+            self.joint_window.frames.copy_(state["amp"]["window"])
+            self.joint_window.filled.copy_(state["amp"]["filled"])
+        set_rng_state(state["rng"])
+        self.log(f"[train] resumed stage {self.stage} from {path.name} (iteration {state['iteration']})")
+        return int(state["iteration"]), obs
+
+    def _writer(self):
+        if not self.tensorboard:
+            return None
+        from torch.utils.tensorboard import SummaryWriter
+
+        return SummaryWriter(str(self.run_dir / "tensorboard"))
+
+    def _finish(self, iterations: int) -> dict:
+        save_policy(self.run_dir / "policy", self.policy, self.critic, dict(self.meta, iteration=iterations))
+        last = self.history[-1] if self.history else {}
+        metrics = {"stage": self.stage, "variant": self.cfg.variant, "iterations": iterations,
+                   "success_rate": last.get("success_rate"), "return_sparse": last.get("return_sparse"),
+                   "return_dense": last.get("return_dense"), "episodes_in_window": last.get("episodes"),
+                   "env_steps": last.get("env_steps"), "train_seconds": last.get("seconds")}
+        write_text_atomic(self.run_dir / "metrics.json", json.dumps(metrics, indent=2))
+        write_text_atomic(self.run_dir / "history.json", json.dumps(self.history))
+        plot_curve(self.history, self.run_dir / "training_curve.png", f"stage {self.stage} ({self.cfg.variant})")
+        return metrics
+
+
+def plot_curve(history: list[dict], path: Path, title: str) -> None:
+    if not history:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    it = [h["iteration"] for h in history]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
+    for ax, key in zip(axes, ("success_rate", "return_sparse", "return_dense")):
+        ax.plot(it, [h.get(key, float("nan")) for h in history])
+        ax.set_xlabel("iteration")
+        ax.set_title(key)
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_file(path, "wb") as handle:
+        fig.savefig(handle, format="png", dpi=90)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------ high level
+def phase_rate_of(env, data) -> float:
+    """Δφ per control step: from the env if it says, else control_dt / motion duration."""
+    for name in ("dphi", "phase_rate", "delta_phase"):
+        value = getattr(env, name, None)
+        if isinstance(value, (int, float)):
+            return float(value)
+    motion = data.motion
+    return 1.0 / max(motion.num_frames - 1, 1)
+
+
+def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, freeze_base: bool = True) -> dict:
+    from pipeline.robot.g1 import load_robot_config
+
+    robot = load_robot_config()
+    layout = getattr(env, "obs_layout", None)
+    if callable(layout):
+        layout = layout()
+    net = cfg.network
+    return {
+        "robot": robot.name, "task": getattr(data, "task", None), "variant": cfg.variant, "stage": stage,
+        "joint_names": list(getattr(env, "joint_names", robot.joint_names)), "action_dim": int(env.action_dim),
+        "actor_obs_dim": int(env.actor_obs_dim), "critic_obs_dim": int(env.critic_obs_dim),
+        "obs_layout": json.loads(json.dumps(layout, default=lambda x: list(x))) if layout is not None else None,
+        "phase_rate": phase_rate,
+        "architecture": {"actor_hidden": net.actor_hidden, "critic_hidden": net.critic_hidden,
+                         "adapter_hidden": net.adapter_hidden, "activation": net.activation,
+                         "adaptive_phase": bool(cfg.variant_spec.adaptive_phase_stage1),
+                         "freeze_base": freeze_base, "normalize_obs": cfg.ppo.normalize_obs},
+        "outputs": ["joint_action (scaled offset from the default pose)", "phase_rate_offset"],
+        "train_config": cfg.to_dict(),
+    }
+
+
+def make_env(data, env_cfg, cfg: TrainConfig, *, stage: int):
+    from pipeline.envs.tracking_env import TrackingEnv
+
+    env_cfg = env_config_for(env_cfg, cfg.variant_spec, stage)
+    return TrackingEnv(env_cfg, data, num_envs=cfg.ppo.num_envs, backend=cfg.backend, device=cfg.device, seed=cfg.seed)
+
+
+def env_config_for(env_cfg, variant: Variant, stage: int):
+    """The env settings a variant and stage imply: keyframe (sparse) or every-step (dense) global
+    tracking, the adaptive phase in stage 1 for *_dphi, and episodes from t = 0 in stage 2."""
+    if not dataclasses.is_dataclass(env_cfg):
+        return env_cfg
+    env_cfg = copy.deepcopy(env_cfg)
+    if hasattr(env_cfg, "variant"):
+        env_cfg.variant.tracking = "sparse" if variant.keyframe_rewards else "dense"
+        env_cfg.variant.adaptive_phase_stage1 = bool(variant.adaptive_phase_stage1)
+    if stage == 2 and hasattr(env_cfg, "rsi_prob"):
+        env_cfg.rsi_prob = 0.0
+    return env_cfg
+
+
+def _seed(seed: int) -> None:
+    import random
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, env=None,
+                 iterations: int | None = None, **trainer_kwargs) -> dict:
+    variant: Variant = cfg.variant_spec
+    _seed(cfg.seed)
+    env = env if env is not None else make_env(data, env_cfg, cfg, stage=1)
+    phase_rate = phase_rate_of(env, data)
+    net = cfg.network
+    policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
+                          adaptive_phase=variant.adaptive_phase_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
+    critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
+    amp, amp_ref = None, None
+    if variant.amp != "none":
+        amp_ref = reference_windows(data.motion.joint_pos, cfg.amp.window, variant.amp == "mimic")
+        amp = AMPDiscriminator(amp_ref.shape[1], cfg.amp, net.activation)
+    meta = policy_meta(env, data, cfg, 1, phase_rate)
+    trainer = Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=meta, l2c2=True, amp=amp, amp_reference=amp_ref,
+                      use_phase_offset=variant.adaptive_phase_stage1, **trainer_kwargs)
+    return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume)
+
+
+def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1_dir: str | Path, resume: bool = False,
+                 env=None, iterations: int | None = None, **trainer_kwargs) -> dict:
+    variant: Variant = cfg.variant_spec
+    stage1_dir = Path(stage1_dir)
+    if not (stage1_dir / "config.json").is_file():
+        raise PipelineInputError(stage1_dir, None, "stage 2 needs a stage-1 policy here (config.json + model.safetensors); train stage 1 first")
+    _seed(cfg.seed + 1)
+    env = env if env is not None else make_env(data, env_cfg, cfg, stage=2)
+    phase_rate = phase_rate_of(env, data)
+    expect = policy_meta(env, data, cfg, 1, phase_rate)
+    base, base_meta = load_policy(stage1_dir, expect)
+    if int(base_meta["stage"]) != 1:
+        raise PipelineInputError(stage1_dir, "stage", f"expected a stage-1 policy, got stage {base_meta['stage']}")
+    net = cfg.network
+    policy = Stage2Policy(base, net.adapter_hidden, net.activation, net.adapter_init_log_std,
+                          freeze_base=variant.freeze_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
+    critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
+    meta = policy_meta(env, data, cfg, 2, phase_rate, freeze_base=variant.freeze_stage1)
+    meta["architecture"]["actor_hidden"] = base_meta["architecture"]["actor_hidden"]
+    meta["architecture"]["adaptive_phase"] = base_meta["architecture"].get("adaptive_phase", False)
+    trainer = Trainer(env, policy, critic, cfg, run_dir, stage=2, meta=meta, l2c2=False, use_phase_offset=True, **trainer_kwargs)
+    return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume)
+
+
+def train(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, **kwargs) -> dict:
+    """Both stages as the variant asks: run_dir/stage1, run_dir/stage2; returns the last stage's metrics."""
+    run_dir = Path(run_dir)
+    s1_metrics_file = run_dir / "stage1" / "metrics.json"
+    if resume and s1_metrics_file.is_file() and (run_dir / "stage1" / "policy" / "config.json").is_file():
+        metrics = json.loads(s1_metrics_file.read_text())  # stage 1 already finished
+    else:
+        metrics = train_stage1(data, env_cfg, cfg, run_dir / "stage1", resume=resume, **kwargs)
+    if cfg.variant_spec.stage2:
+        metrics = train_stage2(data, env_cfg, cfg, run_dir / "stage2", stage1_dir=run_dir / "stage1" / "policy",
+                               resume=resume, **kwargs)
+    return metrics

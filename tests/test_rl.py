@@ -1,0 +1,321 @@
+"""Double-critic PPO, stage-2 adapters, checkpoints and config, on a small keyframe-reaching toy env.
+
+The toy env follows the TrackingEnv contract: a 2-D point mass must be near keyframe targets at two
+fixed steps (sparse group, like AdaMimic's keyframe rewards) while following a reference path and
+not using large actions (dense group); leaving the arena terminates with a penalty; the episode
+times out after `horizon` steps. It draws all randomness from torch's global RNG.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.rl.amp import AMPDiscriminator, reference_windows
+from pipeline.rl.checkpoint import load_policy, save_policy
+from pipeline.rl.config import VARIANTS, TrainConfig
+from pipeline.rl.networks import DoubleCritic, Stage1Policy
+from pipeline.rl.ppo import gae
+from pipeline.rl.stage2 import Stage2Policy
+from pipeline.rl.trainer import Trainer, train_stage2
+
+torch.set_num_threads(1)
+
+
+class ToyKeyframeEnv:
+    horizon = 16
+    keyframes = {7: torch.tensor([1.0, 0.0]), 15: torch.tensor([1.0, 1.0])}
+
+    def __init__(self, num_envs: int = 64):
+        self.num_envs, self.action_dim = num_envs, 2
+        self.actor_obs_dim, self.critic_obs_dim = 3, 4
+        self.dphi = 1.0 / self.horizon
+        self.obs_layout = {"pos": 2, "phase": 1}
+        self.joint_names = ["x", "y"]
+        self.pos = torch.zeros(num_envs, 2)
+        self.t = torch.zeros(num_envs, dtype=torch.long)
+        self.curriculum_calls = []
+
+    def update_curriculum(self, progress):
+        self.curriculum_calls.append(progress)
+
+    def _reference(self, t):
+        # straight line to the first keyframe, then up to the second
+        s = (t.float() + 1) / 8.0
+        first = torch.stack([s.clamp(max=1.0), torch.zeros_like(s)], -1)
+        return first + torch.stack([torch.zeros_like(s), (s - 1.0).clamp(0.0, 1.0)], -1)
+
+    def _obs(self):
+        phase = (self.t.float() / self.horizon).unsqueeze(-1)
+        actor = torch.cat([self.pos, phase], -1)
+        return {"actor": actor, "critic": torch.cat([actor, phase**2], -1)}
+
+    def _reset(self, ids):
+        self.pos[ids] = 0.05 * torch.randn(len(ids), 2)
+        self.t[ids] = 0
+
+    def reset(self):
+        self._reset(torch.arange(self.num_envs))
+        return self._obs()
+
+    def step(self, action, phase_rate_offset=None):
+        action = action.clamp(-1.0, 1.0)
+        self.pos = self.pos + 0.25 * action
+        sparse = torch.zeros(self.num_envs)
+        crossed = torch.zeros(self.num_envs, dtype=torch.bool)
+        err = torch.zeros(self.num_envs, 1)
+        for step, target in self.keyframes.items():
+            hit = self.t == step
+            dist = (self.pos - target).norm(dim=-1)
+            sparse += hit * 10.0 * torch.exp(-(dist**2) / 0.1)
+            crossed |= hit
+            err[hit, 0] = dist[hit]
+        ref_err = (self.pos - self._reference(self.t)).norm(dim=-1)
+        dense = 0.5 * torch.exp(-(ref_err**2) / 0.25) - 0.05 * (action**2).sum(-1)
+        terminated = self.pos.norm(dim=-1) > 2.5
+        sparse -= 10.0 * terminated
+        self.t += 1
+        truncated = (self.t >= self.horizon) & ~terminated
+        final = self._obs()
+        info = {"keyframe_crossed": crossed, "body_pos_error_w": err, "final_obs": final,
+                "phase": self.t.float() / self.horizon, "joint_pos": self.pos.clone()}
+        done = (terminated | truncated).nonzero().flatten()
+        if len(done):
+            self._reset(done)
+        return self._obs(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
+
+
+def small_cfg(**over) -> TrainConfig:
+    raw = {"ppo": {"num_envs": 64, "steps_per_iteration": 16, "epochs": 4, "minibatches": 4, "learning_rate": 3e-3},
+           "network": {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "adapter_hidden": [16], "init_log_std": -0.5},
+           "save_interval": 5}
+    raw.update(over)
+    return TrainConfig.from_dict(raw)
+
+
+def make_stage1(env, cfg, seed=0):
+    torch.manual_seed(seed)
+    net = cfg.network
+    policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
+                          phase_rate=env.dphi)
+    critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation)
+    return policy, critic
+
+
+META = {"robot": "toy", "joint_names": ["x", "y"], "action_dim": 2, "actor_obs_dim": 3, "critic_obs_dim": 4,
+        "obs_layout": {"pos": 2, "phase": 1}, "phase_rate": 1.0 / 16, "stage": 1, "variant": "adamimic",
+        "architecture": {"actor_hidden": [32, 32], "critic_hidden": [32, 32], "adapter_hidden": [16],
+                         "activation": "elu", "adaptive_phase": False, "freeze_base": True, "normalize_obs": True}}
+
+
+@torch.no_grad()
+def evaluate(policy, episodes_envs: int = 256) -> float:
+    """Mean undiscounted return (sparse + dense) of the deterministic policy over one episode."""
+    torch.manual_seed(123)
+    env = ToyKeyframeEnv(episodes_envs)
+    obs = env.reset()
+    total = torch.zeros(episodes_envs)
+    alive = torch.ones(episodes_envs, dtype=torch.bool)
+    for _ in range(env.horizon):
+        action, _ = policy(obs["actor"])
+        obs, rew, term, trunc, _ = env.step(action)
+        total += alive * (rew["sparse"] + rew["dense"])
+        alive &= ~(term | trunc)
+    return total.mean().item()
+
+
+# ------------------------------------------------------------------------------------------ GAE
+def test_gae_per_group_matches_hand_computation():
+    rewards = torch.tensor([[1.0, -1.0], [2.0, 0.0], [3.0, 1.0]])
+    values = torch.tensor([[0.5, 0.0], [0.6, 0.0], [0.7, 0.0]])
+    last = torch.tensor([0.8, 1.0])
+    terminated = torch.tensor([[False, True], [False, False], [False, False]])
+    # env 0 times out at t=1 (bootstrap value 0.9); env 1 terminates and times out at t=0 (no bootstrap).
+    truncated = torch.tensor([[False, True], [True, False], [False, False]])
+    timeout_values = torch.tensor([[0.0, 5.0], [0.9, 0.0], [0.0, 0.0]])
+
+    dense_adv, dense_ret = gae(rewards, values, last, terminated, truncated, 0.9, 0.8, timeout_values)
+    a2 = 3.0 + 0.9 * 0.8 - 0.7
+    a1 = 2.0 + 0.9 * 0.9 - 0.6  # bootstrapped at the timeout, trace cut
+    a0 = (1.0 + 0.9 * 0.6 - 0.5) + 0.9 * 0.8 * a1
+    b2 = 1.0 + 0.9 * 1.0
+    b1 = 0.0 + 0.9 * 0.8 * b2
+    b0 = -1.0  # terminated: neither the next value nor the timeout value
+    expected = torch.tensor([[a0, b0], [a1, b1], [a2, b2]])
+    assert torch.allclose(dense_adv, expected, atol=1e-6)
+    assert torch.allclose(dense_ret, expected + values, atol=1e-6)
+
+    sparse_adv, _ = gae(rewards, values, last, terminated, truncated, 1.0, 0.8, None)
+    s2 = 3.0 + 0.8 - 0.7
+    s1 = 2.0 - 0.6  # timeout ends the return: no bootstrap in the sparse group
+    s0 = (1.0 + 0.6 - 0.5) + 0.8 * s1
+    t2 = 1.0 + 1.0
+    t1 = 0.8 * t2
+    assert torch.allclose(sparse_adv, torch.tensor([[s0, -1.0], [s1, t1], [s2, t2]]), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------ learning
+def test_ppo_improves_return_on_toy_keyframe_task(tmp_path):
+    cfg = small_cfg()
+    torch.manual_seed(0)
+    env = ToyKeyframeEnv(cfg.ppo.num_envs)
+    policy, critic = make_stage1(env, cfg)
+    before = evaluate(policy)
+    trainer = Trainer(env, policy, critic, cfg, tmp_path, stage=1, meta=META, l2c2=True, tensorboard=False, progress=False)
+    metrics = trainer.run(40)
+    after = evaluate(policy)
+    # The optimum is ~20 sparse + ~5 dense; doing nothing scores ~3.
+    assert after > before + 8.0, (before, after)
+    assert after > 15.0, after
+    assert env.curriculum_calls and env.curriculum_calls[-1] == pytest.approx(39 / 40)
+    assert metrics["success_rate"] is not None and metrics["success_rate"] > 0.8
+    assert (tmp_path / "training_curve.png").stat().st_size > 0
+    assert json.loads((tmp_path / "metrics.json").read_text())["iterations"] == 40
+    loaded, meta = load_policy(tmp_path / "policy", {"robot": "toy", "obs_layout": {"pos": 2, "phase": 1}})
+    obs = torch.randn(5, 3)
+    assert torch.equal(loaded(obs)[0], policy.eval()(obs)[0])
+
+
+# ------------------------------------------------------------------------------------------ stage 2
+def _stage2(freeze=True, seed=0):
+    cfg = small_cfg()
+    env = ToyKeyframeEnv(cfg.ppo.num_envs)
+    base, _ = make_stage1(env, cfg, seed)
+    base.normalizer.update(torch.randn(100, 3) * 2 + 1)
+    torch.manual_seed(seed + 1)
+    return Stage2Policy(base, [16], freeze_base=freeze, phase_rate=env.dphi), env, cfg
+
+
+def test_stage2_action_equals_stage1_at_zero_phase_offset():
+    policy, _, _ = _stage2()
+    with torch.no_grad():
+        for p in policy.track_adapter.parameters():  # a large, non-trivial a^Δ
+            p.add_(torch.randn_like(p))
+    obs = torch.randn(32, 3)
+    a_delta = 10 * torch.randn(32, 2)
+    base_action = policy.base(obs)[0]
+    assert torch.equal(policy.compose(obs, torch.zeros(32), a_delta), base_action)
+    raw = torch.cat([torch.zeros(32, 1), a_delta], -1)  # u_phase = 0 maps to Δφ^Δ = 0
+    action, dphi = policy.to_env(obs, raw)
+    assert dphi.abs().max() < 1e-9
+    assert torch.allclose(action, base_action, atol=1e-6)
+    # and Δφ^Δ != 0 really changes the action; bounds hold at the extremes
+    moved, _ = policy.to_env(obs, torch.cat([torch.ones(32, 1), a_delta], -1))
+    assert (moved - base_action).abs().max() > 0.1
+    extremes = policy.phase_bound(torch.tensor([-50.0, 50.0]))
+    assert torch.allclose(extremes, torch.tensor([-0.75 * policy.phase_rate, policy.phase_rate]), atol=1e-7)
+
+
+@pytest.mark.parametrize("freeze", [True, False])
+def test_stage2_update_keeps_frozen_stage1_parameters(tmp_path, freeze):
+    policy, env, cfg = _stage2(freeze)
+    base_before = {k: v.clone() for k, v in policy.base.state_dict().items()}
+    adapter_before = [p.clone() for p in policy.track_adapter.parameters()]
+    critic = DoubleCritic(env.critic_obs_dim, [32], "elu")
+    meta = dict(META, stage=2)
+    Trainer(env, policy, critic, cfg, tmp_path, stage=2, meta=meta, use_phase_offset=True,
+            tensorboard=False, progress=False).run(2)
+    base_after = policy.base.state_dict()
+    unchanged = all(torch.equal(base_before[k], base_after[k]) for k in base_before)
+    assert unchanged == freeze
+    assert any(not torch.equal(a, b) for a, b in zip(adapter_before, policy.track_adapter.parameters()))
+    loaded, meta = load_policy(tmp_path / "policy")
+    obs = torch.randn(4, 3)
+    assert isinstance(loaded, Stage2Policy)
+    for got, want in zip(loaded(obs), policy.eval()(obs)):
+        assert torch.equal(got, want)
+
+
+# ------------------------------------------------------------------------------------------ resume
+def _trainer(run_dir, cfg, seed):
+    torch.manual_seed(seed)
+    env = ToyKeyframeEnv(cfg.ppo.num_envs)
+    policy, critic = make_stage1(env, cfg, seed)
+    return Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=META, l2c2=True, tensorboard=False, progress=False)
+
+
+def test_resume_reproduces_the_next_iteration_bit_for_bit(tmp_path):
+    cfg = small_cfg(save_interval=2, ppo={"num_envs": 32, "steps_per_iteration": 8, "epochs": 2, "minibatches": 2})
+    straight = _trainer(tmp_path / "a", cfg, seed=0)
+    straight.run(3)
+    interrupted = _trainer(tmp_path / "b", cfg, seed=0)
+    interrupted.run(2)  # "killed" after the checkpoint at iteration 2
+    resumed = _trainer(tmp_path / "b", cfg, seed=99)  # different init: everything must come from disk
+    resumed.run(3, resume=True)
+    for (k, a), b in zip(straight.policy.state_dict().items(), resumed.policy.state_dict().values()):
+        assert torch.equal(a, b), k
+    for a, b in zip(straight.critic.state_dict().values(), resumed.critic.state_dict().values()):
+        assert torch.equal(a, b)
+    assert straight.ppo.learning_rate == resumed.ppo.learning_rate
+    assert [h["policy_loss"] for h in straight.history] == [h["policy_loss"] for h in resumed.history]
+
+
+# ------------------------------------------------------------------------------------------ AMP
+def test_amp_style_reward_in_sparse_group(tmp_path):
+    cfg = small_cfg(variant="amp_style")
+    ref = torch.cumsum(torch.full((40, 2), 0.05), 0).numpy()
+    windows = reference_windows(ref, 5, with_phase=False)
+    assert windows.shape == (36, 10)
+    amp = AMPDiscriminator(10, cfg.amp)
+    env = ToyKeyframeEnv(cfg.ppo.num_envs)
+    policy, critic = make_stage1(env, cfg)
+    trainer = Trainer(env, policy, critic, cfg, tmp_path, stage=1, meta=META, amp=amp, amp_reference=windows,
+                      tensorboard=False, progress=False)
+    trainer.run(2)
+    h = trainer.history[-1]
+    assert h["disc_real"] > h["disc_fake"]  # the discriminator separates reference from policy
+    style = amp.style_reward(windows)
+    assert ((style >= 0) & (style <= 1)).all()
+    combined = amp.combine({"sparse": torch.ones(3), "dense": torch.ones(3)}, torch.ones(3))
+    assert torch.allclose(combined["sparse"], torch.full((3,), 1.0)) and torch.allclose(combined["dense"], torch.full((3,), 0.9))
+
+
+# ------------------------------------------------------------------------------------------ config / bad input
+def test_config_profiles_and_variants():
+    gpu = TrainConfig.from_dict({"profile": "gpu"})
+    assert (gpu.ppo.num_envs, gpu.ppo.steps_per_iteration, gpu.ppo.epochs) == (4096, 75, 5)
+    assert gpu.network.actor_hidden == [512, 256, 128] and gpu.ppo.kl_target == 0.01 and gpu.ppo.learning_rate == 1e-3
+    assert (gpu.ppo.gamma_sparse, gpu.ppo.gamma_dense, gpu.ppo.adv_weight_dense) == (1.0, 0.99, 0.5)
+    cpu = TrainConfig.from_dict({})
+    assert cpu.profile == "cpu" and cpu.variant == "adamimic" and cpu.ppo.num_envs <= 256
+    assert TrainConfig.from_dict({"variant": "adamimic_nofreeze"}).variant_spec.freeze_stage1 is False
+    assert len(VARIANTS) == 10 and not VARIANTS["deepmimic_noadapt"].keyframe_rewards
+    assert VARIANTS["deepmimic_noadapt"].reference == "original" and VARIANTS["amp_mimic"].amp == "mimic"
+
+
+@pytest.mark.parametrize("raw, field", [
+    ({"variant": "adamimc"}, "variant"),
+    ({"profile": "tpu"}, "profile"),
+    ({"ppo": {"num_env": 3}}, "num_env"),
+    ({"ppo": {"num_envs": 0}}, "ppo.num_envs"),
+    ({"ppo": {"epochs": "five"}}, "epochs"),
+    ({"network": {"activation": "gelu"}}, "network.activation"),
+])
+def test_bad_train_config_names_the_key(raw, field):
+    with pytest.raises(PipelineInputError) as err:
+        TrainConfig.from_dict(raw)
+    assert field in str(err.value)
+
+
+def test_checkpoint_from_another_robot_or_layout_is_refused(tmp_path):
+    cfg = small_cfg()
+    env = ToyKeyframeEnv(4)
+    policy, critic = make_stage1(env, cfg)
+    save_policy(tmp_path / "p", policy, critic, META)
+    load_policy(tmp_path / "p", {"robot": "toy", "obs_layout": META["obs_layout"], "actor_obs_dim": 3})
+    with pytest.raises(PipelineInputError, match="robot"):
+        load_policy(tmp_path / "p", {"robot": "unitree_g1"})
+    with pytest.raises(PipelineInputError, match="obs_layout"):
+        load_policy(tmp_path / "p", {"robot": "toy", "obs_layout": {"pos": 2, "phase": 1, "psi": 1}})
+    with pytest.raises(PipelineInputError, match="not a policy folder"):
+        load_policy(tmp_path / "missing")
+
+
+def test_stage2_without_stage1_checkpoint_is_refused(tmp_path):
+    cfg = small_cfg()
+    with pytest.raises(PipelineInputError, match="stage-1"):
+        train_stage2(None, None, cfg, tmp_path / "s2", stage1_dir=tmp_path / "nothing", env=ToyKeyframeEnv(4))
+    assert not (tmp_path / "s2").exists()
