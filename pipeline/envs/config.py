@@ -1,0 +1,239 @@
+"""`EnvConfig`: every number of the tracking environment, typed, from `params.yaml` `env:`.
+
+`EnvConfig.from_dict(raw, where="env")` accepts a partial mapping (missing keys keep the paper's
+defaults below) and raises `PipelineInputError` naming the dotted key for unknown keys, wrong types
+and out-of-range values, so a typo in params.yaml is caught before anything runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+
+from pipeline.common.errors import PipelineInputError
+
+LOWER_BODY = ("pelvis", "left_hip", "left_knee", "left_ankle", "right_hip", "right_knee", "right_ankle")
+
+
+@dataclass
+class RewardWeights:
+    # sparse group: paid only on the step that crosses a keyframe (termination: on the terminal step)
+    global_body_pos: float = 10.0
+    global_body_rot: float = 5.0
+    global_feet_pos: float = 10.0
+    termination: float = -200.0
+    # dense group: every step
+    local_body_pos: float = 0.75
+    local_body_rot: float = 0.5
+    local_joint_pos: float = 0.75
+    feet_orientation: float = -0.05
+    joint_acc: float = -2.5e-7
+    joint_vel: float = -5e-4
+    action_rate: float = -0.5
+    smoothness: float = -0.01
+    torques: float = -1e-6
+    torque_limits: float = -1.0
+    joint_pos_limits: float = -10.0
+    joint_vel_limits: float = -5.0
+
+
+@dataclass
+class KernelSigmas:
+    """σ² of the exp(−Σ err²/(n σ²)) tracking kernels (the reference implementation's values)."""
+
+    upper_body_pos: float = 0.03
+    lower_body_pos: float = 0.1
+    body_rot: float = 1.0
+    joint_pos: float = 1.0
+    feet_pos: float = 0.03
+
+
+@dataclass
+class RewardConfig:
+    weights: RewardWeights = field(default_factory=RewardWeights)
+    sigma2: KernelSigmas = field(default_factory=KernelSigmas)
+    lower_body: list[str] = field(default_factory=lambda: list(LOWER_BODY))
+    feet: list[str] = field(default_factory=lambda: ["left_ankle", "right_ankle"])
+    soft_torque_limit: float = 0.95  # fraction of the effort limit where the torque penalty starts
+    soft_joint_pos_limit: float = 0.95  # fraction of the joint range (about its centre)
+    soft_joint_vel_limit: float = 0.95
+    scale_by_dt: bool = False  # multiply the dense group by the control dt (legged_gym habit)
+
+
+@dataclass
+class ObservationConfig:
+    history: int = 5
+    odometry_rate_hz: float = 10.0
+    odometry_noise_std: float = 0.02  # m, Gaussian, per axis, at each refresh
+
+
+@dataclass
+class CurriculumConfig:
+    """Keyframe-error termination threshold against training progress p ∈ [0, 1]: linear from
+    `start` down to `min` over [0, tighten_until], held, then relaxed linearly to `max` over
+    [relax_from, 1] (the paper relaxes it late in training)."""
+
+    start: float = 1.5
+    min: float = 0.6
+    max: float = 2.0
+    tighten_until: float = 0.5
+    relax_from: float = 0.8
+
+
+@dataclass
+class TerminationConfig:
+    keyframe_error: CurriculumConfig = field(default_factory=CurriculumConfig)
+    max_tilt: float = 0.8  # |projected gravity xy|
+    min_base_height: float = 0.4  # m, world z of the pelvis
+    base_height_enabled: bool = True
+    base_height_exempt_tasks: list[str] = field(default_factory=list)  # tasks that go low on purpose
+
+
+@dataclass
+class Range:
+    enabled: bool = True
+    low: float = 0.0
+    high: float = 0.0
+
+
+def _rng(enabled: bool, low: float, high: float):
+    return field(default_factory=lambda: Range(enabled, low, high))
+
+
+@dataclass
+class PushConfig:
+    enabled: bool = True
+    interval_s: list[float] = field(default_factory=lambda: [5.0, 10.0])
+    max_vel_xy: float = 0.5  # m/s added to the base velocity
+    max_vel_yaw: float = 0.4  # rad/s
+
+
+@dataclass
+class RandomizationConfig:
+    """The paper's domain randomisation table; each term switchable. Applied per world at reset."""
+
+    enabled: bool = True
+    trunk_mass_add: Range = _rng(True, -2.0, 5.0)  # kg added to `trunk_body`
+    base_com_offset: Range = _rng(True, -0.1, 0.1)  # m, per axis, on `base_body`
+    link_mass_scale: Range = _rng(True, 0.9, 1.1)  # every other body
+    friction: Range = _rng(True, 0.1, 1.1)  # sliding friction of the robot's collision geoms
+    restitution: Range = _rng(True, 0.0, 0.1)  # via the feet's contact damping ratio
+    p_gain_scale: Range = _rng(True, 0.85, 1.15)
+    d_gain_scale: Range = _rng(True, 0.85, 1.15)
+    motor_strength: Range = _rng(True, 0.9, 1.1)
+    control_delay_ms: Range = _rng(True, 0.0, 100.0)
+    push: PushConfig = field(default_factory=PushConfig)
+    trunk_body: str = "torso_link"
+    base_body: str = "pelvis"
+
+
+@dataclass
+class VariantConfig:
+    tracking: str = "sparse"  # "sparse": keyframe rewards (AdaMimic); "dense": every-step global tracking
+    adaptive_phase_stage1: bool = False  # the trainer feeds Δφ^Δ already in stage 1
+
+
+@dataclass
+class EnvConfig:
+    rewards: RewardConfig = field(default_factory=RewardConfig)
+    observations: ObservationConfig = field(default_factory=ObservationConfig)
+    terminations: TerminationConfig = field(default_factory=TerminationConfig)
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    variant: VariantConfig = field(default_factory=VariantConfig)
+    rsi_prob: float = 0.5  # probability of starting at a random keyframe instead of t = 0
+    action_clip: float = 100.0
+    physics_threads: int = 2
+    torch_threads: int = 1  # 0: leave torch's setting alone; small per-step ops prefer 1 beside physics
+
+    @classmethod
+    def from_dict(cls, raw: dict | None, where: str = "env") -> "EnvConfig":
+        cfg = _build(cls, raw or {}, where)
+        cfg.validate(where)
+        return cfg
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def validate(self, where: str = "env") -> None:
+        def bad(key, problem):
+            raise PipelineInputError(where, key, problem)
+
+        if self.observations.history < 1:
+            bad("observations.history", "must be >= 1")
+        if self.observations.odometry_rate_hz <= 0:
+            bad("observations.odometry_rate_hz", "must be > 0")
+        if self.observations.odometry_noise_std < 0:
+            bad("observations.odometry_noise_std", "must be >= 0")
+        if not 0.0 <= self.rsi_prob <= 1.0:
+            bad("rsi_prob", "must be in [0, 1]")
+        if self.variant.tracking not in ("sparse", "dense"):
+            bad("variant.tracking", f"must be 'sparse' or 'dense', got {self.variant.tracking!r}")
+        for name, value in dataclasses.asdict(self.rewards.sigma2).items():
+            if value <= 0:
+                bad(f"rewards.sigma2.{name}", "must be > 0")
+        c = self.terminations.keyframe_error
+        if not (0 < c.min <= c.start <= c.max):
+            bad("terminations.keyframe_error", "needs 0 < min <= start <= max")
+        if not (0 <= c.tighten_until <= c.relax_from <= 1):
+            bad("terminations.keyframe_error", "needs 0 <= tighten_until <= relax_from <= 1")
+        for f in dataclasses.fields(RandomizationConfig):
+            r = getattr(self.randomization, f.name)
+            if isinstance(r, Range) and r.low > r.high:
+                bad(f"randomization.{f.name}", f"low {r.low} > high {r.high}")
+        if self.randomization.control_delay_ms.low < 0:
+            bad("randomization.control_delay_ms.low", "must be >= 0")
+        iv = self.randomization.push.interval_s
+        if len(iv) != 2 or not 0 < iv[0] <= iv[1]:
+            bad("randomization.push.interval_s", "must be [min, max] seconds with 0 < min <= max")
+        if self.physics_threads < 1:
+            bad("physics_threads", "must be >= 1")
+        if self.torch_threads < 0:
+            bad("torch_threads", "must be >= 0")
+
+
+def _build(cls, raw, where: str):
+    """Recursively builds dataclass `cls` from a mapping, checking keys and scalar types."""
+    if not isinstance(raw, dict):
+        raise PipelineInputError(where.split(".")[0], where, f"expected a mapping, got {type(raw).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(raw) - names)
+    if unknown:
+        raise PipelineInputError(where.split(".")[0], f"{where}.{unknown[0]}", f"unknown key (known: {sorted(names)})")
+    kwargs = {}
+    for key, value in raw.items():
+        kwargs[key] = _convert(hints[key], value, f"{where}.{key}")
+    return cls(**kwargs)
+
+
+def _convert(hint, value, key: str):
+    source = key.split(".")[0]
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, value, key)
+    origin = typing.get_origin(hint)
+    if origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise PipelineInputError(source, key, f"expected a list, got {value!r}")
+        (item,) = typing.get_args(hint)
+        return [_convert(item, v, f"{key}[{i}]") for i, v in enumerate(value)]
+    if origin in (typing.Union, types.UnionType):
+        raise PipelineInputError(source, key, "unsupported type")  # none are used
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise PipelineInputError(source, key, f"expected true/false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise PipelineInputError(source, key, f"expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise PipelineInputError(source, key, f"expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise PipelineInputError(source, key, f"expected a string, got {value!r}")
+        return value
+    return value

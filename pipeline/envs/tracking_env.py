@@ -1,0 +1,511 @@
+"""The vectorised G1 tracking environment of AdaMimic (paper "Background" and appendix).
+
+Everything per step is batched torch over N worlds; reference quantities are precomputed per
+frame (and keyframe targets per ψ-sample and keyframe) at construction so a step only gathers.
+Physics sits behind `pipeline.sim` (`PhysicsBackend`); this file never touches MjData.
+
+Phase φ ∈ [0, 1] maps to reference frame round(φ (T−1)). A step advances φ by Δφ = Δt/T, plus
+stage 2's offset clamped to [−0.75Δφ, +Δφ]; it "crosses" keyframe k when φ_prev < φ_k <= φ_new,
+and only then pays the sparse group (against the keyframe's target for the episode's ψ sample).
+Episodes auto-reset: the returned observation of a finished world is its new episode's first;
+the last observation of the finished episode is in info["final_obs"].
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.envs import rewards as R
+from pipeline.envs.config import EnvConfig
+from pipeline.envs.randomization import DomainRandomizer
+from pipeline.envs.torch_math import (
+    projected_gravity,
+    quat_conjugate,
+    quat_mul,
+    quat_rotate_inverse,
+    yaw_quat,
+)
+from pipeline.keyframes.tracking_data import TrackingData
+from pipeline.robot.g1 import joint_limits, load_robot_config
+
+FRAME_OBS_DIM = 3 + 3 + 27 + 27 + 27 + 1 + 1 + 3  # per history step (for the 27-joint G1)
+_EPS = 1e-6
+
+
+class TrackingEnv:
+    def __init__(self, cfg: EnvConfig, data: TrackingData, *, num_envs: int, backend="cpu", device="cpu",
+                 seed: int = 0, task=None):
+        self.cfg = cfg
+        self.data = data
+        self.robot = load_robot_config()
+        self.device = torch.device(device)
+        source = f"task {data.task}"
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs <= 0:
+            raise PipelineInputError(source, "num_envs", f"must be a positive integer, got {num_envs!r}")
+        self.num_envs = n = int(num_envs)
+        self._check_data(data, source)
+        if cfg.torch_threads > 0 and self.device.type == "cpu":
+            # Per-step tensors are small: one torch thread beside the physics threads avoids
+            # oversubscribing the cores (measured in benchmarks/env_throughput.py).
+            torch.set_num_threads(cfg.torch_threads)
+
+        builder, self._layout = _terrain_hooks(data, task, source)
+        try:
+            from pipeline.sim.model import build_sim_model
+
+            model = build_sim_model(terrain=builder)
+        except Exception as exc:  # a terrain that does not compile is the task's fault
+            raise PipelineInputError(source, "terrain", f"cannot build the scene: {exc}") from exc
+        self.backend = _make_backend(backend, model, n, cfg.physics_threads, device, source)
+        self.model = self.backend.model  # the compiled scene with the backend's sensors
+        self.decimation = int(self.backend.decimation)
+        self.control_dt = self.robot.control_dt
+        self.sim_dt = self.control_dt / self.decimation
+
+        self._gen = torch.Generator(device="cpu").manual_seed(seed)
+        self._np_rng = np.random.default_rng(seed)
+        self._precompute_reference()
+        self._precompute_robot()
+        self.randomizer = DomainRandomizer(cfg.randomization, self.model, self.backend, self._np_rng)
+        self._terrain_fields = self._precompute_terrain()
+
+        self.actor_obs_dim = FRAME_OBS_DIM * cfg.observations.history
+        self.critic_obs_dim = self.actor_obs_dim + 3 + self.num_joints + 1 + 1
+        self.action_dim = self.num_joints
+
+        self.termination_threshold = float(cfg.terminations.keyframe_error.start)
+        self._alloc_state()
+
+    # ------------------------------------------------------------------------------------ set-up
+    def _check_data(self, data: TrackingData, source: str) -> None:
+        m = data.motion
+        if tuple(m.joint_names) != self.robot.joint_names:
+            if set(m.joint_names) == set(self.robot.joint_names):
+                data.motion = m = m.reorder_joints(self.robot.joint_names)
+            else:
+                missing = sorted(set(self.robot.joint_names) - set(m.joint_names))
+                extra = sorted(set(m.joint_names) - set(self.robot.joint_names))
+                raise PipelineInputError(source, "motion.joint_names",
+                                         f"do not match the robot (missing {missing}, unexpected {extra})")
+        if tuple(m.body_names) != self.robot.tracked_body_names:
+            raise PipelineInputError(source, "motion.body_names", "do not match the robot's tracked bodies")
+        kf = np.asarray(data.keyframe_frames)
+        if kf.ndim != 1 or (kf.size and (kf.min() < 0 or kf.max() >= m.num_frames)) or np.any(np.diff(kf) <= 0):
+            raise PipelineInputError(source, "keyframe_frames", f"must be increasing frames in [0, {m.num_frames})")
+        if data.num_samples < 1:
+            raise PipelineInputError(source, "psi", "needs at least one ψ sample")
+        if np.shape(data.keyframe_offsets) != (data.num_samples, kf.size, 3):
+            raise PipelineInputError(source, "keyframe_offsets",
+                                     f"expected shape ({data.num_samples}, {kf.size}, 3), got {np.shape(data.keyframe_offsets)}")
+        if len(data.sparse_scale) != kf.size:
+            raise PipelineInputError(source, "sparse_scale", f"expected {kf.size} values")
+        if abs(m.fps * self.robot.control_dt - 1.0) > 1e-6:
+            raise PipelineInputError(source, "motion.fps", f"must be the control rate {1 / self.robot.control_dt:g}, got {m.fps}")
+
+    def _tensor(self, x, dtype=torch.float32):
+        return torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)
+
+    def _precompute_reference(self) -> None:
+        d, m = self.data, self.data.motion
+        t = self.num_frames = m.num_frames
+        self.dphi = self.control_dt / m.duration  # Δφ = Δt / T
+        self.ref_joint_pos = self._tensor(m.joint_pos)
+        self.ref_root_pos = self._tensor(m.root_pos)
+        self.ref_root_quat = self._tensor(m.root_quat)
+        self.ref_body_pos = self._tensor(m.body_pos)
+        self.ref_body_quat = self._tensor(m.body_quat)
+        self.ref_qvel = self._tensor(m.qvel())
+        root_q = self.ref_root_quat[:, None].expand(-1, m.body_pos.shape[1], -1)
+        self.ref_local_pos = quat_rotate_inverse(root_q, self.ref_body_pos - self.ref_root_pos[:, None])
+        self.ref_local_quat = quat_mul(quat_conjugate(root_q), self.ref_body_quat)
+        samples = np.repeat(np.arange(d.num_samples), t)
+        frames = np.tile(np.arange(t), d.num_samples)
+        offsets = d.offsets_at_frames(samples, frames).reshape(d.num_samples, t, 3)
+        self.offset_table = self._tensor(offsets)  # (S, T, 3): the ψ edit at every frame
+        self.offset_vel_table = self._tensor(np.gradient(offsets, m.dt, axis=1) if t > 1 else 0 * offsets)
+        self.psi = self._tensor(d.psi)
+        kf = np.asarray(d.keyframe_frames, dtype=np.int64)
+        self.num_keyframes = kf.size
+        self.kf_frames = torch.as_tensor(kf, device=self.device)
+        # Phase arithmetic in float64: float32 sums drift by ~1e-5 over a long clip, enough to move a
+        # keyframe crossing by a step.
+        self.kf_phase = self._tensor(kf / (t - 1), torch.float64)
+        self.kf_phase_padded = torch.cat([self.kf_phase, torch.full((1,), math.inf, dtype=torch.float64, device=self.device)])
+        self.kf_scale = self._tensor(d.sparse_scale)
+        self.kf_target_pos = self._tensor(m.body_pos[kf][None] + np.asarray(d.keyframe_offsets)[:, :, None])  # (S,K,B,3)
+        self.kf_target_quat = self._tensor(m.body_quat[kf])  # (K,B,4): edits only translate
+
+    def _precompute_robot(self) -> None:
+        cfg, rc = self.cfg.rewards, self.robot
+        self.num_joints = rc.num_joints
+        names = rc.tracked_body_names
+        for key, group in (("rewards.lower_body", cfg.lower_body), ("rewards.feet", cfg.feet)):
+            unknown = [b for b in group if b not in names]
+            if unknown:
+                raise PipelineInputError("env", key, f"unknown tracked bodies {unknown}")
+        s = cfg.sigma2
+        inv = [1.0 / (s.lower_body_pos if b in cfg.lower_body else s.upper_body_pos) for b in names]
+        self.inv_sigma2_pos = self._tensor(inv)
+        self.feet_idx = torch.as_tensor([names.index(f) for f in cfg.feet], device=self.device)
+        self.default_joint_pos = self._tensor(rc.default_joint_pos)
+        self.action_scale = self._tensor(rc.action_scale)
+        lim = joint_limits(self.model, rc.joint_names)
+        lo, hi = R.soft_range(lim[:, 0], lim[:, 1], cfg.soft_joint_pos_limit)
+        self.soft_pos_low, self.soft_pos_high = self._tensor(lo), self._tensor(hi)
+        self.soft_vel_limit = self._tensor(rc.velocity_limit * cfg.soft_joint_vel_limit)
+        self.soft_torque_limit = self._tensor(rc.effort_limit * cfg.soft_torque_limit)
+        term = self.cfg.terminations
+        self.height_termination = term.base_height_enabled and self.data.task not in term.base_height_exempt_tasks
+        self.odom_every = max(1, int(round(1.0 / (self.cfg.observations.odometry_rate_hz * self.control_dt))))
+
+    def _precompute_terrain(self):
+        """Per ψ-sample positions/sizes of the terrain geoms, as full per-world geom fields."""
+        if self._layout is None:
+            return None
+        layouts = [self._layout(float(p)) for p in self.data.psi]
+        if not layouts or not layouts[0]:
+            return None
+        names = sorted(layouts[0])
+        try:
+            ids = [self.model.geom(nm).id for nm in names]
+        except KeyError as exc:
+            raise PipelineInputError(f"task {self.data.task}", "terrain", f"layout names an unknown geom: {exc}") from exc
+        pos = np.repeat(self.model.geom_pos[None], len(layouts), 0).copy()
+        size = np.repeat(self.model.geom_size[None], len(layouts), 0).copy()
+        for s, lay in enumerate(layouts):
+            for gid, nm in zip(ids, names):
+                pos[s, gid], size[s, gid] = lay[nm]
+        return pos, size
+
+    def _alloc_state(self) -> None:
+        n, j, dev = self.num_envs, self.num_joints, self.device
+        z = lambda *shape: torch.zeros(*shape, device=dev)  # noqa: E731
+        self.phase = torch.zeros(n, dtype=torch.float64, device=dev)
+        self.frame = torch.zeros(n, dtype=torch.long, device=dev)
+        self.sample = torch.zeros(n, dtype=torch.long, device=dev)
+        self.next_kf = torch.zeros(n, dtype=torch.long, device=dev)
+        self.episode_step = torch.zeros(n, dtype=torch.long, device=dev)
+        self.prev_action, self.prev_action2 = z(n, j), z(n, j)
+        self.prev_joint_vel = z(n, j)
+        self.odometry, self.odom_origin = z(n, 3), z(n, 3)
+        self.odom_origin_quat = torch.zeros(n, 4, device=dev)
+        self.odom_origin_quat[:, 0] = 1.0
+        self.obs_history = z(n, self.cfg.observations.history, FRAME_OBS_DIM)
+        self.privileged = z(n, self.critic_obs_dim - self.actor_obs_dim)
+        self.arange = torch.arange(n, device=dev)
+        # Control delay: ring buffer of joint targets; lag[i, s] = control steps back used at substep s.
+        max_delay = int(round(self.randomizer.max_delay_s / self.sim_dt))
+        self.target_slots = max_delay // self.decimation + 2
+        self.target_history = z(self.target_slots, n, j)
+        self.target_ptr = 0
+        self.delay_lag = torch.zeros(n, self.decimation, dtype=torch.long, device=dev)
+        self.delay_substeps = torch.zeros(n, dtype=torch.long, device=dev)
+        self.push_timer = z(n)
+
+    # ------------------------------------------------------------------------------------ API
+    def reset(self) -> dict[str, torch.Tensor]:
+        self._reset_worlds(self.arange)
+        return self._obs_dict()
+
+    def set_termination_threshold(self, value: float) -> float:
+        c = self.cfg.terminations.keyframe_error
+        self.termination_threshold = float(min(max(value, c.min), c.max))
+        return self.termination_threshold
+
+    def update_curriculum(self, progress: float) -> float:
+        """Sets the keyframe-error termination threshold from training progress p ∈ [0, 1]."""
+        c = self.cfg.terminations.keyframe_error
+        p = min(max(float(progress), 0.0), 1.0)
+        if p <= c.tighten_until:
+            value = c.start + (c.min - c.start) * (p / c.tighten_until if c.tighten_until > 0 else 1.0)
+        elif p < c.relax_from:
+            value = c.min
+        else:
+            value = c.min + (c.max - c.min) * ((p - c.relax_from) / max(1.0 - c.relax_from, _EPS))
+        return self.set_termination_threshold(value)
+
+    def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
+        cfg, w = self.cfg, self.cfg.rewards.weights
+        action = action.to(self.device, torch.float32).clamp(-cfg.action_clip, cfg.action_clip)
+        target = self.default_joint_pos + self.action_scale * action
+        self._apply_pushes()
+        self.backend.step(self._delayed_control(target))
+
+        b = self.backend
+        qpos, qvel = b.qpos, b.qvel
+        root_pos, root_quat = qpos[:, 0:3], qpos[:, 3:7]
+        joint_pos, joint_vel = qpos[:, 7:], qvel[:, 6:]
+        site_pos, site_quat = b.site_pos, b.site_quat
+
+        # ---- phase
+        dphi = self.dphi
+        if phase_rate_offset is not None:
+            off = phase_rate_offset.to(self.device, torch.float64).reshape(-1)
+            dphi = dphi + off.clamp(-0.75 * self.dphi, self.dphi)
+        prev_phase = self.phase
+        self.phase = phase = prev_phase + dphi
+        self.frame = frame = (phase * (self.num_frames - 1)).round().long().clamp_(0, self.num_frames - 1)
+        self.episode_step += 1
+        crossed = phase >= self.kf_phase_padded[self.next_kf] - _EPS
+        crossed_kf = torch.full_like(self.next_kf, -1)
+
+        # ---- dense group
+        root_q = root_quat[:, None].expand_as(site_quat)
+        local_pos = quat_rotate_inverse(root_q, site_pos - root_pos[:, None])
+        local_err2 = ((local_pos - self.ref_local_pos[frame]) ** 2).sum(-1)
+        local_quat = quat_mul(quat_conjugate(root_q), site_quat)
+        s2 = cfg.rewards.sigma2
+        joint_acc = (joint_vel - self.prev_joint_vel) / self.control_dt
+        torque = b.actuator_force
+        terms = {
+            "local_body_pos": torch.exp(-(local_err2 * self.inv_sigma2_pos).mean(-1)),
+            "local_body_rot": R.rotation_kernel(local_quat, self.ref_local_quat[frame], s2.body_rot),
+            "local_joint_pos": R.joint_kernel(joint_pos, self.ref_joint_pos[frame], s2.joint_pos),
+            "feet_orientation": R.feet_orientation(site_quat[:, self.feet_idx], b.foot_contact.to(torch.float32)),
+            "joint_acc": R.sum_sq(joint_acc),
+            "joint_vel": R.sum_sq(joint_vel),
+            "action_rate": R.sum_sq(action - self.prev_action),
+            "smoothness": R.smoothness(action, self.prev_action, self.prev_action2),
+            "torques": R.sum_sq(torque),
+            "torque_limits": R.over_limit(torque, self.soft_torque_limit),
+            "joint_pos_limits": R.outside_range(joint_pos, self.soft_pos_low, self.soft_pos_high),
+            "joint_vel_limits": R.over_limit(joint_vel, self.soft_vel_limit),
+        }
+        dense = sum(getattr(w, k) * v for k, v in terms.items())
+
+        # ---- global errors against the (edited) reference at the current frame: info + dense variant
+        ref_pos_w = self.ref_body_pos[frame] + self.offset_table[self.sample, frame][:, None]
+        err2_w = ((site_pos - ref_pos_w) ** 2).sum(-1)
+        sparse = torch.zeros(self.num_envs, device=self.device)
+        terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        if cfg.variant.tracking == "dense":
+            g = self._global_terms(err2_w, site_quat, self.ref_body_quat[frame])
+            dense = dense + w.global_body_pos * g[0] + w.global_body_rot * g[1] + w.global_feet_pos * g[2]
+            terminated |= err2_w.max(-1).values > self.termination_threshold**2
+
+        # ---- sparse group: only worlds crossing a keyframe this step
+        if bool(crossed.any()):
+            ids = crossed.nonzero().squeeze(-1)
+            k = torch.searchsorted(self.kf_phase, phase[ids] + _EPS, right=True) - 1
+            self.next_kf[ids] = k + 1
+            crossed_kf[ids] = k
+            err2 = ((site_pos[ids] - self.kf_target_pos[self.sample[ids], k]) ** 2).sum(-1)
+            if cfg.variant.tracking == "sparse":
+                g = self._global_terms(err2, site_quat[ids], self.kf_target_quat[k])
+                sparse[ids] = self.kf_scale[k] * (w.global_body_pos * g[0] + w.global_body_rot * g[1]
+                                                  + w.global_feet_pos * g[2])
+                terminated[ids] |= err2.max(-1).values > self.termination_threshold**2
+
+        # ---- terminations
+        gravity = projected_gravity(root_quat)
+        terminated |= gravity[:, 0] ** 2 + gravity[:, 1] ** 2 > cfg.terminations.max_tilt**2
+        if self.height_termination:
+            terminated |= root_pos[:, 2] < cfg.terminations.min_base_height
+        truncated = (phase >= 1.0 - _EPS) & ~terminated
+        sparse = sparse + w.termination * terminated.to(torch.float32)
+        if cfg.rewards.scale_by_dt:
+            dense = dense * self.control_dt
+
+        # ---- observations (pre-reset ones are the finished episodes' last)
+        self.prev_action2, self.prev_action = self.prev_action, action
+        self.prev_joint_vel = joint_vel.clone()  # the backend refreshes its views in place
+        self._observe(gravity)
+        final_obs = self._obs_dict()
+        info = {
+            "keyframe_crossed": crossed,
+            "keyframe_index": crossed_kf,
+            "body_pos_error_w": err2_w.sqrt(),
+            "body_pos_error_local": local_err2.sqrt(),
+            "joint_acc": joint_acc,
+            "phase": phase.clone(),
+            "frame": frame.clone(),
+            "psi": self.psi[self.sample],
+            "sample": self.sample.clone(),
+            "terms": terms,
+            "final_obs": final_obs,
+            "termination_threshold": self.termination_threshold,
+        }
+        done = terminated | truncated
+        if bool(done.any()):
+            self._reset_worlds(done.nonzero().squeeze(-1))
+        return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
+
+    # ------------------------------------------------------------------------------------ internals
+    def _global_terms(self, err2, quat, target_quat):
+        s2 = self.cfg.rewards.sigma2
+        pos = torch.exp(-(err2 * self.inv_sigma2_pos).mean(-1))
+        rot = R.rotation_kernel(quat, target_quat, s2.body_rot)
+        feet = torch.exp(-err2[:, self.feet_idx].mean(-1) / s2.feet_pos)
+        return pos, rot, feet
+
+    def _delayed_control(self, target: torch.Tensor) -> torch.Tensor:
+        if not self.randomizer.delay_enabled:
+            return target
+        self.target_ptr = (self.target_ptr + 1) % self.target_slots
+        self.target_history[self.target_ptr] = target
+        slots = (self.target_ptr - self.delay_lag) % self.target_slots  # (N, decimation)
+        return self.target_history[slots, self.arange[:, None]]  # (N, decimation, J)
+
+    def _apply_pushes(self) -> None:
+        push = self.cfg.randomization.push
+        if not (self.cfg.randomization.enabled and push.enabled):
+            return
+        self.push_timer -= self.control_dt
+        due = self.push_timer <= 0
+        if not bool(due.any()):
+            return
+        ids = due.nonzero().squeeze(-1)
+        qvel = self.backend.qvel[ids].clone()
+        kick = torch.rand(ids.numel(), 3, generator=self._gen) * 2 - 1
+        qvel[:, 0:2] += push.max_vel_xy * kick[:, :2]
+        qvel[:, 5] += push.max_vel_yaw * kick[:, 2]
+        self.backend.set_state(ids, self.backend.qpos[ids].clone(), qvel)
+        self.push_timer[ids] = self._push_interval(ids.numel())
+
+    def _push_interval(self, n: int) -> torch.Tensor:
+        lo, hi = self.cfg.randomization.push.interval_s
+        return lo + (hi - lo) * torch.rand(n, generator=self._gen)
+
+    def _frame_features(self, ids, gravity=None):
+        """The 92-d actor observation of one step for worlds `ids` (None: all)."""
+        b = self.backend
+        sel = (lambda x: x) if ids is None else (lambda x: x[ids])
+        qpos, qvel = sel(b.qpos), sel(b.qvel)
+        if gravity is None:
+            gravity = projected_gravity(qpos[:, 3:7])
+        step = sel(self.episode_step)
+        fresh = quat_rotate_inverse(sel(self.odom_origin_quat), qpos[:, 0:3] - sel(self.odom_origin))
+        std = self.cfg.observations.odometry_noise_std
+        if std > 0:
+            fresh = fresh + std * torch.randn(fresh.shape, generator=self._gen)
+        odom = torch.where((step % self.odom_every == 0)[:, None], fresh, sel(self.odometry))
+        if ids is None:
+            self.odometry = odom
+        else:
+            self.odometry[ids] = odom
+        phase, sample = sel(self.phase).to(torch.float32), sel(self.sample)
+        frame_obs = torch.cat([
+            qvel[:, 3:6], gravity, qpos[:, 7:] - self.default_joint_pos, qvel[:, 6:], sel(self.prev_action),
+            phase[:, None], self.psi[sample][:, None], odom,
+        ], dim=-1)
+        lin_vel_b = quat_rotate_inverse(qpos[:, 3:7], qvel[:, 0:3])
+        to_next = (self.kf_phase_padded[sel(self.next_kf)] - sel(self.phase)).clamp(max=1.0).to(torch.float32)
+        privileged = torch.cat([lin_vel_b, self.ref_joint_pos[sel(self.frame)], qpos[:, 2:3], to_next[:, None]], dim=-1)
+        return frame_obs, privileged
+
+    def _observe(self, gravity) -> None:
+        frame_obs, self.privileged = self._frame_features(None, gravity)
+        self.obs_history = torch.cat([self.obs_history[:, 1:], frame_obs[:, None]], dim=1)
+
+    def _obs_dict(self) -> dict[str, torch.Tensor]:
+        actor = self.obs_history.reshape(self.num_envs, -1)
+        return {"actor": actor, "critic": torch.cat([actor, self.privileged], dim=-1)}
+
+    def _reset_worlds(self, ids: torch.Tensor) -> None:
+        n, dev = ids.numel(), self.device
+        sample = torch.randint(self.data.num_samples, (n,), generator=self._gen).to(dev)
+        frame = torch.zeros(n, dtype=torch.long, device=dev)
+        if self.num_keyframes > 0 and self.cfg.rsi_prob > 0:
+            rsi = torch.rand(n, generator=self._gen).to(dev) < self.cfg.rsi_prob
+            k = torch.randint(self.num_keyframes, (n,), generator=self._gen).to(dev)
+            # the last frame would time out at once: RSI only from keyframes before it
+            rsi &= self.kf_frames[k] < self.num_frames - 1
+            frame = torch.where(rsi, self.kf_frames[k], frame)
+        qpos = torch.cat([self.ref_root_pos[frame] + self.offset_table[sample, frame], self.ref_root_quat[frame],
+                          self.ref_joint_pos[frame]], dim=-1)
+        qvel = self.ref_qvel[frame].clone()
+        qvel[:, 0:3] += self.offset_vel_table[sample, frame]
+        self.backend.set_state(ids, qpos, qvel)
+
+        ids_np = ids.cpu().numpy()
+        sample_np = sample.cpu().numpy()
+        if self._terrain_fields is not None:
+            self.backend.set_model_field("geom_pos", ids_np, self._terrain_fields[0][sample_np])
+            self.backend.set_model_field("geom_size", ids_np, self._terrain_fields[1][sample_np])
+        delay = self.randomizer.apply(ids_np)  # (n,) seconds of control delay
+        d = torch.as_tensor(np.round(delay / self.sim_dt), dtype=torch.long, device=dev)
+        self.delay_substeps[ids] = d
+        sub = torch.arange(self.decimation, device=dev)
+        self.delay_lag[ids] = torch.clamp(torch.div(d[:, None] - sub + self.decimation - 1, self.decimation,
+                                                    rounding_mode="floor"), min=0)
+        self.target_history[:, ids] = self.ref_joint_pos[frame]
+
+        self.sample[ids] = sample
+        self.frame[ids] = frame
+        self.phase[ids] = frame.to(torch.float64) / (self.num_frames - 1)
+        self.next_kf[ids] = torch.searchsorted(self.kf_frames, frame, right=True)
+        self.episode_step[ids] = 0
+        self.prev_action[ids] = 0.0
+        self.prev_action2[ids] = 0.0
+        self.prev_joint_vel[ids] = qvel[:, 6:]
+        self.odom_origin[ids] = self.ref_root_pos[0] + self.offset_table[sample, 0]
+        self.odom_origin_quat[ids] = yaw_quat(self.ref_root_quat[0])
+        self.push_timer[ids] = self._push_interval(n).to(dev)
+        frame_obs, privileged = self._frame_features(ids)
+        hist = self.obs_history.clone()
+        hist[ids] = frame_obs[:, None].expand(-1, self.cfg.observations.history, -1)
+        self.obs_history = hist
+        priv = self.privileged.clone()
+        priv[ids] = privileged
+        self.privileged = priv
+
+
+def _make_backend(backend, model, num_envs, nthread, device, source):
+    if not isinstance(backend, str):
+        return backend  # an already built PhysicsBackend (tests, custom engines)
+    if backend not in ("cpu", "warp"):
+        raise PipelineInputError(source, "backend", f"unknown backend {backend!r} (known: cpu, warp)")
+    from pipeline.sim.backend import make_backend
+
+    try:
+        return make_backend(backend, model, num_envs, nthread=nthread, device=str(device))
+    except PipelineInputError:
+        raise
+    except (ValueError, RuntimeError, ImportError) as exc:
+        raise PipelineInputError(source, "backend", f"cannot start {backend!r}: {exc}") from exc
+
+
+def _terrain_hooks(data: TrackingData, task, source):
+    """(builder, layout(psi)) from pipeline.keyframes when it provides them; flat ground otherwise."""
+    if not data.terrain or data.terrain.get("kind", "flat") == "flat":
+        return None, None  # flat ground: nothing to build or move
+    try:
+        from pipeline import keyframes as kf_module
+
+        builder_fn = getattr(kf_module, "terrain_builder", None)
+        layout_fn = getattr(kf_module, "terrain_layout", None)
+        if builder_fn is None:
+            from pipeline.keyframes import terrain as kf_module  # type: ignore[no-redef]
+
+            builder_fn = getattr(kf_module, "terrain_builder", None)
+            layout_fn = getattr(kf_module, "terrain_layout", None)
+    except ImportError:
+        builder_fn = layout_fn = None
+    if builder_fn is None:
+        raise PipelineInputError(source, "terrain",
+                                 f"terrain {data.terrain.get('kind')!r} declared but pipeline.keyframes has no terrain_builder")
+    # The hooks take the task; without one, the resolved declaration TrackingData carries.
+    task = task if task is not None else data.terrain
+    try:
+        builder = builder_fn(task)
+    except PipelineInputError:
+        raise
+    except Exception as exc:
+        raise PipelineInputError(source, "terrain", f"cannot build the terrain: {exc}") from exc
+    layout = None
+    if layout_fn is not None:
+        def layout(psi: float):
+            try:
+                return layout_fn(task, psi)
+            except PipelineInputError:
+                raise
+            except Exception as exc:
+                raise PipelineInputError(source, "terrain", f"cannot lay out ψ={psi}: {exc}") from exc
+    return builder, layout
+
+
+__all__ = ["TrackingEnv", "FRAME_OBS_DIM"]
