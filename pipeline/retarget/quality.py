@@ -1,0 +1,102 @@
+"""Quality report of a retargeted motion, and the floor geometry it needs.
+
+Definitions (all on the final 50 Hz motion unless said):
+  keypoint_err_mm           mean over source frames and tracked keypoints of |robot - target|,
+                            both taken relative to their pelvis; targets are the scaled human
+                            keypoints of `skeleton.transfer_skeleton` (the human skeleton with the
+                            robot's bone lengths), after ground and contact correction.
+  keypoint_err_uniform_mm   the same against the human joints scaled uniformly (s * (p - pelvis)),
+                            for reference: it includes the proportion mismatch and cannot be ~0.
+  foot_skate_mm_per_frame   mean horizontal motion of an ankle between consecutive output frames
+                            while its foot is in contact (max also reported).
+  max_penetration_mm        deepest point of any robot collision geom below z = 0.
+  joint_limit_violations    number of (frame, joint) entries outside the model's joint range.
+  max_joint_vel             largest |joint velocity| in rad/s (central differences at 50 Hz).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from pipeline.motion.motion import Motion
+from pipeline.robot.g1 import joint_limits
+
+
+class GeomHeights:
+    """Lowest world z of each foot and of the whole robot, per frame, from collision geoms."""
+
+    def __init__(self, model: mujoco.MjModel, qpos_index: np.ndarray, foot_bodies: tuple[int, int]):
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self.qpos_index = qpos_index
+        robot_geoms = np.flatnonzero(model.geom_bodyid > 0)
+        self.geoms = robot_geoms
+        self.foot_of_geom = np.full(len(robot_geoms), -1)
+        for side, body in enumerate(foot_bodies):
+            self.foot_of_geom[model.geom_bodyid[robot_geoms] == body] = side
+        self.types = model.geom_type[robot_geoms]
+        self.sizes = model.geom_size[robot_geoms]
+
+    def lowest(self, motion: Motion) -> tuple[np.ndarray, np.ndarray]:
+        """(T, 2) lowest foot points, (T,) lowest robot point."""
+        t = motion.num_frames
+        feet = np.empty((t, 2))
+        body = np.empty(t)
+        for i in range(t):
+            self.data.qpos[:3] = motion.root_pos[i]
+            self.data.qpos[3:7] = motion.root_quat[i]
+            self.data.qpos[self.qpos_index] = motion.joint_pos[i]
+            mujoco.mj_kinematics(self.model, self.data)
+            z = self._lowest_z(self.data.geom_xpos[self.geoms], self.data.geom_xmat[self.geoms])
+            body[i] = z.min()
+            for side in range(2):
+                feet[i, side] = z[self.foot_of_geom == side].min()
+        return feet, body
+
+    def _lowest_z(self, pos: np.ndarray, xmat: np.ndarray) -> np.ndarray:
+        zrow = xmat[:, 6:9]  # third row of each rotation: world z of the geom's local axes
+        z = pos[:, 2].copy()
+        sphere = self.types == mujoco.mjtGeom.mjGEOM_SPHERE
+        capsule = self.types == mujoco.mjtGeom.mjGEOM_CAPSULE
+        cylinder = self.types == mujoco.mjtGeom.mjGEOM_CYLINDER
+        box = self.types == mujoco.mjtGeom.mjGEOM_BOX
+        z[sphere] -= self.sizes[sphere, 0]
+        z[capsule] -= np.abs(zrow[capsule, 2]) * self.sizes[capsule, 1] + self.sizes[capsule, 0]
+        # Cylinder: half-height along its axis plus the radius across it.
+        zc = zrow[cylinder, 2]
+        z[cylinder] -= np.abs(zc) * self.sizes[cylinder, 1] + np.sqrt(np.clip(1 - zc**2, 0, 1)) * self.sizes[cylinder, 0]
+        z[box] -= np.sum(np.abs(zrow[box]) * self.sizes[box, :3], axis=1)
+        return z
+
+
+def foot_skate(ankle_pos: np.ndarray, contacts: np.ndarray) -> tuple[float, float]:
+    """Mean and max horizontal ankle motion (m/frame) over consecutive in-contact frames."""
+    steps = []
+    for side in range(2):
+        both = contacts[1:, side] & contacts[:-1, side]
+        d = np.linalg.norm(np.diff(ankle_pos[:, side, :2], axis=0), axis=-1)[both]
+        steps.append(d)
+    d = np.concatenate(steps)
+    if d.size == 0:
+        return 0.0, 0.0
+    return float(d.mean()), float(d.max())
+
+
+def keypoint_error(robot_pos: np.ndarray, target_pos: np.ndarray, pelvis: int, keypoints: list[int]) -> float:
+    r = robot_pos - robot_pos[:, pelvis : pelvis + 1]
+    g = target_pos - target_pos[:, pelvis : pelvis + 1]
+    return float(np.linalg.norm(r[:, keypoints] - g[:, keypoints], axis=-1).mean())
+
+
+def joint_report(motion: Motion, model: mujoco.MjModel) -> dict:
+    limits = joint_limits(model, motion.joint_names)
+    tol = 1e-6
+    outside = (motion.joint_pos < limits[:, 0] - tol) | (motion.joint_pos > limits[:, 1] + tol)
+    vel = np.abs(motion.joint_vel)
+    worst = int(np.argmax(vel.max(axis=0)))
+    return {
+        "joint_limit_violations": int(outside.sum()),
+        "max_joint_vel_rad_s": float(vel.max()),
+        "max_joint_vel_joint": motion.joint_names[worst],
+    }
