@@ -1,0 +1,158 @@
+"""Evaluation outputs: metrics json (DVC metrics), per-ψ csv/json (DVC plots), figures, the table.
+
+The table follows the paper's layout: one row per variant; column groups easy / hard / overall,
+each with success, E_l-bpe, E_g-bpe, E_smth as "mean ± std" over runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.common.atomic import atomic_file, write_text_atomic
+from pipeline.common.errors import PipelineInputError
+from pipeline.evaluation.metrics import (
+    METRIC_LABELS,
+    METRIC_NAMES,
+    EpisodeMetrics,
+    EpisodeRecord,
+    aggregate_ranges,
+    bin_by_psi,
+)
+
+RANGE_ORDER = ("easy", "hard", "overall")
+
+
+def metrics_document(task: str, variant: str, runs: list[dict[str, list[EpisodeMetrics]]],
+                     psi_ranges: dict, extra: dict | None = None) -> dict:
+    return {"task": task, "variant": variant, "psi_ranges": psi_ranges,
+            "ranges": aggregate_ranges(runs), **(extra or {})}
+
+
+def write_metrics(path: str | Path, doc: dict) -> None:
+    write_text_atomic(path, json.dumps(doc, indent=2, allow_nan=True))
+
+
+def per_psi_rows(runs: list[dict[str, list[EpisodeMetrics]]], psi_ranges: dict, points: int) -> list[dict]:
+    """Metrics in `points` equal ψ bins over the union of the ranges, all runs pooled."""
+    episodes = [e for run in runs for name in run for e in run[name]]
+    lo = min(i[0] for v in psi_ranges.values() for i in v)
+    hi = max(i[1] for v in psi_ranges.values() for i in v)
+    rows = bin_by_psi(episodes, np.linspace(lo, hi, points + 1))
+    return [r for r in rows if r["episodes"] > 0]
+
+
+def write_per_psi(csv_path: str | Path, rows: list[dict], json_path: str | Path | None = None) -> None:
+    columns = ["psi", "psi_lo", "psi_hi", *METRIC_NAMES, "episodes"]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k]) for k in columns})
+    write_text_atomic(csv_path, buf.getvalue())
+    if json_path is not None:
+        write_text_atomic(json_path, json.dumps(rows, indent=1))
+
+
+def _savefig(fig, path: Path) -> None:
+    with atomic_file(path, "wb") as handle:
+        fig.savefig(handle, format="png", dpi=110, bbox_inches="tight")
+
+
+def plot_per_psi(rows_by_variant: dict[str, list[dict]], psi_ranges: dict, path: str | Path) -> None:
+    """Success and the three errors against ψ, one line per variant, ranges shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.4))
+    colors = {"easy": "#d8f0d8", "hard": "#f6dcdc"}
+    for ax, metric in zip(axes, METRIC_NAMES):
+        for name, intervals in psi_ranges.items():
+            for lo, hi in intervals:
+                ax.axvspan(lo, hi, color=colors.get(name, "#eeeeee"), zorder=0)
+        for variant, rows in rows_by_variant.items():
+            ax.plot([r["psi"] for r in rows], [r[metric] for r in rows], "o-", ms=3, label=variant)
+        ax.set_xlabel("ψ (m)")
+        ax.set_title(METRIC_LABELS[metric])
+        ax.grid(alpha=0.3)
+    axes[0].set_ylim(-2, 102)
+    axes[0].legend(fontsize=7)
+    _savefig(fig, Path(path))
+    plt.close(fig)
+
+
+def plot_adapters(traces: list[EpisodeRecord], phase_rate: float, path: str | Path) -> None:
+    """The adapters' behaviour (paper's figure): phase interval Δφ = Δφ₀ + Δφ^Δ and the adapter's
+    action magnitude over the episode, one line per ψ."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(11, 3.6))
+    for rec in traces:
+        t = np.arange(rec.num_steps) * 0.02
+        a0.plot(t, phase_rate + np.asarray(rec.phase_rate_offset), label=f"ψ={rec.psi:.2f}")
+        if rec.adapter_action_norm is not None and np.isfinite(rec.adapter_action_norm).any():
+            a1.plot(t, rec.adapter_action_norm, label=f"ψ={rec.psi:.2f}")
+        for ax in (a0, a1):
+            for k in np.flatnonzero(rec.keyframe_crossed):
+                ax.axvline(t[k], color="gray", lw=0.5, alpha=0.4)
+    a0.axhline(phase_rate, color="k", ls="--", lw=0.8, label="Δφ (stage 1)")
+    a0.set_title("phase interval Δφ per step")
+    a1.set_title("adapter action magnitude ‖a − a₁‖")
+    for ax in (a0, a1):
+        ax.set_xlabel("time (s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    _savefig(fig, Path(path))
+    plt.close(fig)
+
+
+def _cell(stat: dict, metric: str) -> str:
+    m, s = stat["mean"], stat["std"]
+    if not np.isfinite(m):
+        return "–"
+    digits = 1 if metric in ("success", "e_l_bpe", "e_g_bpe") else 2
+    return f"{m:.{digits}f} ± {s:.{digits}f}"
+
+
+def results_table(docs: dict[str, dict]) -> str:
+    """Markdown table in the paper's layout from {variant: metrics json}."""
+    short = {"success": "Succ.↑", "e_l_bpe": "E_l-bpe↓", "e_g_bpe": "E_g-bpe↓", "e_smth": "E_smth↓"}
+    groups = [g for g in RANGE_ORDER if any(g in d["ranges"] for d in docs.values())]
+    head1 = "| Method | " + " | ".join(f"{g} {short[m]}" for g in groups for m in METRIC_NAMES) + " |"
+    sep = "|---|" + "---|" * (len(groups) * len(METRIC_NAMES))
+    lines = [head1, sep]
+    for variant, doc in docs.items():
+        cells = [_cell(doc["ranges"][g][m], m) if g in doc["ranges"] else "–" for g in groups for m in METRIC_NAMES]
+        lines.append(f"| {variant} | " + " | ".join(cells) + " |")
+    note = ("\nSucc. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s²; mean ± std over runs "
+            f"({next(iter(docs.values()))['ranges']['overall']['episodes']['runs']} runs).\n") if docs else ""
+    return "\n".join(lines) + "\n" + note
+
+
+def write_report(task: str, variants: list[str], results_dir: str | Path, out_dir: str | Path) -> Path:
+    """reports/<task>/: table.md over the variants evaluated, per-ψ figure of all variants."""
+    results_dir, out_dir = Path(results_dir), Path(out_dir)
+    docs, rows, ranges = {}, {}, {}
+    for variant in variants:
+        path = results_dir / variant / "metrics.json"
+        if not path.is_file():
+            raise PipelineInputError(path, None, f"no evaluation for variant {variant!r} (run the evaluate stage)")
+        docs[variant] = json.loads(path.read_text())
+        ranges = docs[variant].get("psi_ranges", ranges)
+        per_psi = results_dir / variant / "per_psi.json"
+        if per_psi.is_file():
+            rows[variant] = json.loads(per_psi.read_text())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out_dir / "table.md", f"# {task}\n\n" + results_table(docs))
+    if rows:
+        plot_per_psi(rows, ranges, out_dir / "per_psi.png")
+    return out_dir / "table.md"
