@@ -172,7 +172,8 @@ class Trainer:
         return obs
 
     # -- the loop ---------------------------------------------------------------------------
-    def run(self, iterations: int, resume: bool = False) -> dict:
+    def run(self, iterations: int, resume: bool = False, time_limit_s: float | None = None) -> dict:
+        """Trains up to `iterations` (or until `time_limit_s` of wall time), saving as it goes."""
         start, obs = 0, None
         if resume:
             start, obs = self._restore()
@@ -199,8 +200,12 @@ class Trainer:
                     if isinstance(v, (int, float)) and math.isfinite(v):
                         writer.add_scalar(f"stage{self.stage}/{k}", v, it + 1)
             bar.set_postfix(success=f"{stats.get('success_rate', float('nan')):.2f}", ret=f"{stats.get('return_sparse', float('nan')):.1f}")
-            if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations:
+            out_of_time = time_limit_s is not None and time.time() - t0 > time_limit_s
+            if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations or out_of_time:
                 self._save(it + 1, obs)
+            if out_of_time:
+                iterations = it + 1
+                break
         bar.close()
         if writer is not None:
             writer.close()
@@ -356,7 +361,7 @@ def _seed(seed: int) -> None:
 
 
 def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, env=None,
-                 iterations: int | None = None, **trainer_kwargs) -> dict:
+                 iterations: int | None = None, time_limit_s: float | None = None, **trainer_kwargs) -> dict:
     variant: Variant = cfg.variant_spec
     _seed(cfg.seed)
     env = env if env is not None else make_env(data, env_cfg, cfg, stage=1)
@@ -372,11 +377,11 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
     meta = policy_meta(env, data, cfg, 1, phase_rate)
     trainer = Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=meta, l2c2=True, amp=amp, amp_reference=amp_ref,
                       use_phase_offset=variant.adaptive_phase_stage1, **trainer_kwargs)
-    return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume)
+    return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
 
 
 def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1_dir: str | Path, resume: bool = False,
-                 env=None, iterations: int | None = None, **trainer_kwargs) -> dict:
+                 env=None, iterations: int | None = None, time_limit_s: float | None = None, **trainer_kwargs) -> dict:
     variant: Variant = cfg.variant_spec
     stage1_dir = Path(stage1_dir)
     if not (stage1_dir / "config.json").is_file():
@@ -396,7 +401,7 @@ def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1
     meta["architecture"]["actor_hidden"] = base_meta["architecture"]["actor_hidden"]
     meta["architecture"]["adaptive_phase"] = base_meta["architecture"].get("adaptive_phase", False)
     trainer = Trainer(env, policy, critic, cfg, run_dir, stage=2, meta=meta, l2c2=False, use_phase_offset=True, **trainer_kwargs)
-    return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume)
+    return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
 
 
 def train(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, **kwargs) -> dict:

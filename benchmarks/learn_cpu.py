@@ -1,0 +1,98 @@
+"""Does stage 1 learn on 2 CPU cores? Goal: >= 90 % success within 20 minutes.
+
+Imports ../shared/data/adamimic_smpl/far_jump.npz, retargets it to the G1, cuts about 1.5 s around
+the jump (from a little before take-off to after landing), selects keyframes, builds D_edit and
+trains stage 1 (variant adamimic, cpu profile) against the real TrackingEnv until the time budget.
+Success is the trainer's: the share of finished training episodes with no termination and a mean
+body error <= 1 m at every keyframe. Prints the curve and ends with `success=<s> minutes=<m>`.
+
+    .venv/bin/python benchmarks/learn_cpu.py [--minutes 20] [--segment 1.5] [--envs 192] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+CLIP = ROOT.parent / "shared" / "data" / "adamimic_smpl" / "far_jump.npz"
+
+
+def build_data(segment_s: float, num_samples: int = 64):
+    from pipeline.human.importers import load_human_motion
+    from pipeline.keyframes.config import load_tasks, load_yaml_strict
+    from pipeline.keyframes.edit import build_tracking_data
+    from pipeline.keyframes.select import select_keyframes
+    from pipeline.retarget import RetargetConfig, retarget
+
+    tasks = load_tasks(load_yaml_strict(ROOT / "pipeline" / "keyframes" / "paper_tasks.yaml")["tasks"])
+    task = tasks["far_jump"]
+    human = load_human_motion(CLIP)
+    motion, _ = retarget(human, RetargetConfig(), fps_out=50, progress=False)
+    full = select_keyframes(motion, task)
+    if full.flights:
+        takeoff, landing = full.flights[0]
+        start = max(0, takeoff - int(0.5 * motion.fps))
+    else:
+        start = 0
+    stop = min(motion.num_frames, start + int(round(segment_s * motion.fps)) + 1)
+    segment = motion.slice(start, stop)
+    keyframes = select_keyframes(segment, task)
+    data = build_tracking_data(segment, task, keyframes, mode="edit", num_samples=num_samples, seed=0)
+    return data, keyframes, (start, stop, motion.num_frames)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=20.0)
+    parser.add_argument("--segment", type=float, default=1.5, help="seconds of the clip to track")
+    parser.add_argument("--envs", type=int, default=None)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+
+    import torch
+
+    from pipeline.envs.config import EnvConfig
+    from pipeline.rl.config import TrainConfig
+    from pipeline.rl.trainer import train_stage1
+
+    t0 = time.time()
+    data, keyframes, (start, stop, total) = build_data(args.segment)
+    print(f"[learn_cpu] far_jump frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
+          f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
+
+    raw = {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": 100000, "save_interval": 50}
+    if args.envs:
+        raw["ppo"] = {"num_envs": args.envs}
+    cfg = TrainConfig.from_dict(raw)
+    env_cfg = EnvConfig()
+    out = args.out or Path(tempfile.mkdtemp(prefix="learn_cpu_"))
+    torch.set_num_threads(2)
+    t1 = time.time()
+    metrics = train_stage1(data, env_cfg, cfg, out, time_limit_s=args.minutes * 60.0, tensorboard=False,
+                           progress=False, log=print)
+    minutes = (time.time() - t1) / 60.0
+
+    import json
+
+    history = json.loads((out / "history.json").read_text())
+    print("iteration  minutes  env_steps  success  return_sparse  return_dense")
+    stride = max(1, len(history) // 30)
+    rows = history[::stride]
+    if rows[-1] is not history[-1]:
+        rows.append(history[-1])
+    for h in rows:
+        print(f"{h['iteration']:9d}  {h['seconds'] / 60:7.2f}  {h['env_steps']:9d}  {h.get('success_rate', float('nan')):7.3f}"
+              f"  {h.get('return_sparse', float('nan')):13.1f}  {h.get('return_dense', float('nan')):12.1f}")
+    print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
+    success = metrics.get("success_rate") or 0.0
+    print(f"success={success:.3f} minutes={minutes:.1f}")
+
+
+if __name__ == "__main__":
+    main()
