@@ -55,8 +55,10 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
     elevation = contact_ops.support_elevation(human, contacts, cfg.contact)
     target_pos, pins = contact_ops.ground_and_pin(targets.pos, targets.quat, names, contacts, elevation,
                                                   scale, geometry.ankle_height)
-    target_pos[:, k["left_ankle"]] = pins.ankle_pos[:, 0]
-    target_pos[:, k["right_ankle"]] = pins.ankle_pos[:, 1]
+    for side, (knee, ankle) in enumerate((("left_knee", "left_ankle"), ("right_knee", "right_ankle"))):
+        # The knee takes half the pin's correction, so the leg chain stays consistent with the foot.
+        target_pos[:, k[knee]] += 0.5 * (pins.ankle_pos[:, side] - target_pos[:, k[ankle]])
+        target_pos[:, k[ankle]] = pins.ankle_pos[:, side]
     target_quat = targets.quat.copy()
     target_quat[:, k["left_ankle"]] = pins.ankle_quat[:, 0]
     target_quat[:, k["right_ankle"]] = pins.ankle_quat[:, 1]

@@ -38,6 +38,7 @@ LIMB_PARENT = {
     "left_elbow": "left_shoulder", "left_wrist": "left_elbow",
     "right_elbow": "right_shoulder", "right_wrist": "right_elbow",
 }
+ORIENTED_BONES = ("left_knee", "right_knee", "left_ankle", "right_ankle")
 # Which SMPL joint each robot keypoint stands for when the task table does not say.
 DEFAULT_HUMAN_JOINT = {
     "pelvis": "pelvis", "torso": "spine1", "head": "head",
@@ -58,6 +59,7 @@ class RobotGeometry:
     trunk_offsets: dict[str, np.ndarray]  # in the pelvis frame
     chest_offsets: dict[str, np.ndarray]  # in the torso frame
     bone_lengths: dict[str, float]  # child keypoint -> length of the bone from its parent
+    rest_dirs: dict[str, np.ndarray]  # child keypoint -> unit bone direction at zero joint angles
     ankle_height: float  # ankle keypoint above the sole when the foot is flat
     height: float  # head keypoint above the sole, standing straight
 
@@ -75,10 +77,11 @@ class RobotGeometry:
         trunk = {n: pos[i[n]] - pelvis for n in TRUNK_CHILDREN}
         chest = {n: torso_rot.T @ (pos[i[n]] - torso) for n in CHEST_CHILDREN}
         bones = {c: float(np.linalg.norm(pos[i[c]] - pos[i[p]])) for c, p in LIMB_PARENT.items()}
+        dirs = {c: (pos[i[c]] - pos[i[p]]) / bones[c] for c, p in LIMB_PARENT.items()}
         sole = foot_sole_height(model, data, model.site_bodyid[site_ids[i["left_ankle"]]])
         return RobotGeometry(
             names=names, rest_pos=pos, rest_quat=rot, trunk_offsets=trunk, chest_offsets=chest,
-            bone_lengths=bones, ankle_height=float(pos[i["left_ankle"], 2] - sole),
+            bone_lengths=bones, rest_dirs=dirs, ankle_height=float(pos[i["left_ankle"], 2] - sole),
             height=float(pos[i["head"], 2] - sole),
         )
 
@@ -148,8 +151,16 @@ def transfer_skeleton(human: HumanMotion, geometry: RobotGeometry, scale: float,
     for child in ("left_knee", "right_knee", "left_ankle", "right_ankle",
                   "left_elbow", "right_elbow", "left_wrist", "right_wrist"):
         parent = LIMB_PARENT[child]
-        d = hp[:, hj[child]] - hp[:, hj[parent]]
-        d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
+        if child in ORIENTED_BONES:
+            # Legs: both skeletons stand straight at rest, so the bone turns with the human parent
+            # joint from the robot's own rest direction (the G1 thigh is not straight hip->knee).
+            d = quat.rotate(robot_equivalent(human.joint_quat[:, hj[parent]]),
+                            np.broadcast_to(geometry.rest_dirs[child], (t, 3)))
+        else:
+            # Arms: the human rests in a T-pose, the robot arms down with bent elbows; follow the
+            # human bone's direction instead.
+            d = hp[:, hj[child]] - hp[:, hj[parent]]
+            d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
         pos[:, k[child]] = pos[:, k[parent]] + geometry.bone_lengths[child] * d
 
     for n in names:
