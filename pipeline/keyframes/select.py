@@ -25,8 +25,8 @@ from pipeline.motion.motion import Motion
 
 STILL_SPEED = 0.25  # m/s: a sole point slower than this may be planted
 STILL_FRAMES_S = 0.05  # a planted stretch lasts at least this long (s)
-EXTEND_SPEED = 0.8  # m/s: while extending a contact (heel strike, toe-off) the sole may roll faster
-HEIGHT_TOL = 0.02  # m: contact while the sole stays this close to the stretch's floor height
+EXTEND_SPEED = 3.0  # m/s: while extending a contact (toe-off, heel strike, a retargeted foot sliding) it may move faster
+HEIGHT_TOL = 0.01  # m: contact while the sole stays this close to the stretch's floor height
 
 
 @dataclass

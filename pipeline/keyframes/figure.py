@@ -1,0 +1,149 @@
+"""The "keyframing and editing" picture: the original keyframes' skeletons in grey and the moved ones
+coloured by ψ (blues: easy, reds: hard), in a side view (along the travel vs height) and a top view;
+plus an mp4 of D_rule motions for a few ψ (matplotlib drawing, OpenCV mp4v writer)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pipeline.common.atomic import atomic_file  # noqa: E402
+from pipeline.keyframes.tracking_data import TrackingData  # noqa: E402
+
+BONES = (
+    ("pelvis", "left_hip"), ("left_hip", "left_knee"), ("left_knee", "left_ankle"),
+    ("pelvis", "right_hip"), ("right_hip", "right_knee"), ("right_knee", "right_ankle"),
+    ("pelvis", "torso"), ("torso", "head"),
+    ("torso", "left_collar"), ("left_collar", "left_shoulder"), ("left_shoulder", "left_elbow"),
+    ("left_elbow", "left_wrist"),
+    ("torso", "right_collar"), ("right_collar", "right_shoulder"), ("right_shoulder", "right_elbow"),
+    ("right_elbow", "right_wrist"),
+)
+
+
+def _in_ranges(value: float, ranges) -> bool:
+    return any(lo <= value <= hi for lo, hi in ranges)
+
+
+def _pick_samples(data: TrackingData, per_group: int = 3) -> list[tuple[int, str]]:
+    """A few samples spread over the easy and the hard ranges."""
+    picked = []
+    for group in ("easy", "hard"):
+        ranges = data.psi_ranges.get(group, [])
+        idx = [i for i, p in enumerate(data.psi) if _in_ranges(p, ranges)]
+        if idx:
+            order = sorted(idx, key=lambda i: data.psi[i])
+            take = np.unique(np.linspace(0, len(order) - 1, min(per_group, len(order))).round().astype(int))
+            picked += [(order[j], group) for j in take]
+    return picked
+
+
+def _view_axes(data: TrackingData) -> np.ndarray:
+    """Unit horizontal travel direction of the clip (side view's abscissa)."""
+    travel = data.motion.root_pos[-1, :2] - data.motion.root_pos[0, :2]
+    n = np.linalg.norm(travel)
+    return travel / n if n > 0.05 else np.array([1.0, 0.0])
+
+
+def _draw_skeleton(ax, pos: np.ndarray, index: dict, project, color, alpha=1.0, lw=1.2) -> None:
+    for a, b in BONES:
+        if a in index and b in index:
+            pa, pb = project(pos[index[a]]), project(pos[index[b]])
+            ax.plot([pa[0], pb[0]], [pa[1], pb[1]], color=color, alpha=alpha, lw=lw, solid_capstyle="round")
+
+
+def keyframe_figure(data: TrackingData, path: str | Path, title: str | None = None) -> None:
+    """Writes the png (atomically)."""
+    motion = data.motion
+    index = {n: i for i, n in enumerate(motion.body_names)}
+    travel = _view_axes(data)
+    side = lambda p: (p[:2] @ travel, p[2])  # noqa: E731
+    top = lambda p: (p[0], p[1])  # noqa: E731
+    fig, axes = plt.subplots(2, 1, figsize=(11, 7), gridspec_kw={"height_ratios": [1.2, 1]})
+    samples = _pick_samples(data)
+    cmaps = {"easy": plt.get_cmap("Blues"), "hard": plt.get_cmap("Reds")}
+    for ax, project in ((axes[0], side), (axes[1], top)):
+        ax.plot(*np.array([project(p) for p in motion.root_pos]).T, color="0.8", lw=0.8, ls="--")
+        for k, frame in enumerate(data.keyframe_frames):
+            _draw_skeleton(ax, motion.body_pos[frame], index, project, "0.55", alpha=0.8)
+        for j, (n, group) in enumerate(samples):
+            group_members = [s for s in samples if s[1] == group]
+            shade = 0.45 + 0.5 * group_members.index((n, group)) / max(len(group_members) - 1, 1)
+            color = cmaps[group](shade)
+            for k, frame in enumerate(data.keyframe_frames):
+                off = data.keyframe_offsets[n, k]
+                if np.allclose(off, 0.0):
+                    continue  # unmoved: it is the grey one
+                _draw_skeleton(ax, motion.body_pos[frame] + off, index, project, color, lw=1.0)
+        ax.set_aspect("equal")
+        ax.grid(alpha=0.2)
+    axes[0].set_xlabel("along the travel (m)")
+    axes[0].set_ylabel("height (m)")
+    axes[1].set_xlabel("x (m)")
+    axes[1].set_ylabel("y (m)")
+    handles = [plt.Line2D([], [], color="0.55", label=f"original keyframes (ψ_raw = {data.psi_raw:g})")]
+    handles += [plt.Line2D([], [], color=cmaps[g](0.7), label=f"{g}: ψ = " + ", ".join(
+        f"{data.psi[n]:.2f}" for n, gg in samples if gg == g)) for g in ("easy", "hard")
+        if any(gg == g for _, gg in samples)]
+    axes[0].legend(handles=handles, loc="upper left", fontsize=8)
+    edited = [f"{data.keyframe_frames[k] / motion.fps:.2f}s {data.keyframe_labels[k]}".strip()
+              for k in np.flatnonzero(data.edited)]
+    fig.suptitle(title or f"{data.task}: {data.num_keyframes} keyframes, edited {', '.join(edited)}")
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_file(path, "wb") as handle:
+        fig.savefig(handle, format="png", dpi=110)
+    plt.close(fig)
+
+
+def rule_video(data: TrackingData, path: str | Path, num_motions: int = 5, fps_out: float = 25.0,
+               size: tuple[int, int] = (640, 360)) -> None:
+    """An mp4 of D_rule motions (dense offsets) for a few ψ, side view, written atomically."""
+    import cv2
+
+    if data.dense_offsets is None:
+        raise ValueError("rule_video needs D_rule (TrackingData with dense_offsets)")
+    motion = data.motion
+    index = {n: i for i, n in enumerate(motion.body_names)}
+    travel = _view_axes(data)
+    side = lambda p: (p[:2] @ travel, p[2])  # noqa: E731
+    order = np.argsort(data.psi)
+    chosen = order[np.unique(np.linspace(0, len(order) - 1, min(num_motions, len(order))).round().astype(int))]
+    colors = plt.get_cmap("viridis")(np.linspace(0.1, 0.9, len(chosen)))
+    all_pos = motion.body_pos[None] + data.dense_offsets[chosen][:, :, None, :]
+    along = all_pos[..., :2] @ travel
+    xlim = (along.min() - 0.3, along.max() + 0.3)
+    ylim = (min(0.0, all_pos[..., 2].min()) - 0.1, all_pos[..., 2].max() + 0.2)
+    step = max(1, int(round(motion.fps / fps_out)))
+    dpi = 80
+    fig, ax = plt.subplots(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi)
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), motion.fps / step, size)
+    try:
+        for t in range(0, motion.num_frames, step):
+            ax.clear()
+            ax.set_xlim(*xlim)
+            ax.set_ylim(*ylim)
+            ax.set_aspect("equal")
+            ax.axhline(0.0, color="0.7", lw=0.8)
+            for c, n in zip(colors, chosen):
+                _draw_skeleton(ax, all_pos[list(chosen).index(n), t], index, side, c, lw=1.5)
+            ax.set_title(f"{data.task} D_rule  t={t / motion.fps:.2f}s  ψ=" +
+                         ", ".join(f"{data.psi[n]:.2f}" for n in chosen), fontsize=8)
+            fig.canvas.draw()
+            rgba = np.asarray(fig.canvas.buffer_rgba())
+            frame = cv2.cvtColor(rgba[..., :3].copy(), cv2.COLOR_RGB2BGR)
+            if frame.shape[1] != size[0] or frame.shape[0] != size[1]:
+                frame = cv2.resize(frame, size)
+            writer.write(frame)
+    finally:
+        writer.release()
+        plt.close(fig)
+    tmp.replace(path)

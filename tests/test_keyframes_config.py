@@ -1,0 +1,115 @@
+"""Task declarations: the seven paper tasks load, a new task needs little, each bad input is refused."""
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.keyframes.config import TaskConfig, label_matches, load_tasks, load_yaml_strict, merge_ranges
+from pipeline.keyframes.select import select_keyframes
+from pipeline.keyframes.synthetic import Flight, synthetic_jump_motion
+
+PAPER = Path(__file__).resolve().parents[1] / "pipeline/keyframes/paper_tasks.yaml"
+MINIMAL = {"input": "data/inputs/x.npz", "edit": "x", "psi": {"raw": 1.1, "easy": [[0.7, 1.6]], "hard": [[0.2, 0.7], [1.6, 2.0]]}}
+
+
+def _task(**changes):
+    raw = {**MINIMAL, **changes}
+    return TaskConfig.from_dict("t1", raw)
+
+
+def test_paper_tasks_load_with_paper_ranges():
+    tasks = load_tasks(load_yaml_strict(PAPER)["tasks"])
+    assert set(tasks) == {"far_jump", "high_jump", "triple_jump", "jump_step_up", "jump_step_down",
+                          "tennis_hit", "badminton_hit"}
+    far = tasks["far_jump"]
+    assert far.psi.raw == 1.1 and far.psi.easy == ((0.7, 1.6),) and far.psi.hard == ((0.2, 0.7), (1.6, 2.0))
+    assert far.psi.train == ((0.2, 2.0),)  # easy ∪ hard, merged
+    assert tasks["high_jump"].psi.train == ((0.05, 0.6),)
+    assert tasks["triple_jump"].psi.train == ((1.2, 4.2),)
+    assert tasks["jump_step_down"].edit.sign == -1.0 and tasks["jump_step_down"].terrain.kind == "step"
+    assert tasks["badminton_hit"].psi.train == ((1.3, 2.5),) and tasks["badminton_hit"].edit.mode == "heading"
+    assert tasks["tennis_hit"].edit.mode == "y" and tasks["high_jump"].edit.mode == "z_apex"
+    for name in ("far_jump", "high_jump", "jump_step_up", "jump_step_down", "tennis_hit"):
+        tasks[name].input_path(PAPER.parents[2])  # the five shared inputs exist
+
+
+def test_minimal_task_gets_defaults():
+    t = _task()
+    assert t.keyframes.mode == "auto" and t.keyframes.spacing == 0.3
+    assert t.edit.keyframes == ("landing",) and t.edit.sign == 1.0
+    assert t.large_scale == 50.0 and t.large_scale_keyframes is None
+    assert t.terrain.kind == "flat" and t.num_samples >= 1
+    assert TaskConfig.from_dict("t2", {**MINIMAL, "edit": "z_apex"}).edit.keyframes == ("apex",)
+
+
+def test_selectors_and_ranges_helpers():
+    assert label_matches("landing", "landing_2") and label_matches("landing", "landing")
+    assert not label_matches("landing_2", "landing_1") and not label_matches("landing", "")
+    assert merge_ranges([(1.6, 2.0), (0.2, 0.7), (0.7, 1.6)]) == ((0.2, 2.0),)
+
+
+@pytest.mark.parametrize("changes, field, words", [
+    ({"edit": "w"}, "edit.mode", "unknown edit axis"),
+    ({"edit": {"mode": "x", "keyframes": []}}, "edit.keyframes", "non-empty"),
+    ({"terrain": "lava"}, "terrain.kind", "unknown terrain"),
+    ({"terrain": "step"}, "terrain.kind", "z_hold"),
+    ({"psi": {"raw": 1.0, "easy": [[1.6, 0.7]]}}, "psi.easy[0]", "inverted"),
+    ({"psi": {"raw": 1.0, "easy": [[0.7, 0.7]]}}, "psi.easy[0]", "empty"),
+    ({"psi": {"raw": 1.0, "easy": []}}, "psi.easy", "empty"),
+    ({"psi": {"raw": 1.0, "train": [[0.5, 1.0]], "hard": [[2.0, 1.0]]}}, "psi.hard[0]", "inverted"),
+    ({"psi": {"easy": [[0.5, 1.0]]}}, "psi.raw", "missing"),
+    ({"input": None}, "input", "path"),
+    ({"num_samples": 0}, "num_samples", ">= 1"),
+    ({"keyframes": [{"time": 1.0}, {"time": 0.5}]}, "keyframes", "increasing"),
+    ({"keyframes": [{"time": 0.5, "label": "takeoff"}, {"time": 1.0}]}, "edit.keyframes", "does not exist"),
+    ({"keyframes": [{"time": 0.5}], "edit": {"mode": "x", "keyframes": [0.7]}}, "edit.keyframes", "does not exist"),
+    ({"colour": "red"}, "", "unknown key"),
+])
+def test_bad_task_names_task_and_field(changes, field, words):
+    with pytest.raises(PipelineInputError) as err:
+        _task(**changes)
+    assert err.value.source == "task t1"
+    assert (err.value.field or "") == field
+    assert words in err.value.problem
+
+
+def test_duplicate_task_names_refused(tmp_path):
+    path = tmp_path / "params.yaml"
+    path.write_text("tasks:\n  far_jump: {input: a.npz}\n  other: {input: b.npz}\n  far_jump: {input: c.npz}\n")
+    with pytest.raises(PipelineInputError) as err:
+        load_yaml_strict(path)
+    assert err.value.field == "far_jump" and "duplicate" in err.value.problem
+    path.write_text("tasks:\n  a: {input: a.npz}\n  b: {input: b.npz}\n")
+    assert set(load_yaml_strict(path)["tasks"]) == {"a", "b"}
+
+
+def test_missing_input_named():
+    with pytest.raises(PipelineInputError, match="input"):
+        _task(input="data/inputs/nothing_here.npz").input_path()
+
+
+@pytest.fixture(scope="module")
+def jump():
+    return synthetic_jump_motion([Flight(1.0, 0.4, 1.1)], duration=2.5)
+
+
+def test_keyframe_beyond_motion_end(jump):
+    task = _task(keyframes=[{"time": 0.5}, {"time": 1.4, "label": "landing"}, {"time": 3.0}])
+    with pytest.raises(PipelineInputError) as err:
+        select_keyframes(jump, task)
+    assert err.value.source == "task t1" and "beyond the motion's end" in err.value.problem
+    task = _task(keyframes={"overrides": {"landing": 2.9}})
+    with pytest.raises(PipelineInputError, match="beyond"):
+        select_keyframes(jump, task)
+
+
+def test_edited_keyframe_missing_in_motion(jump):
+    # A hit is requested but the motion has none of that label after overriding events.
+    task = _task(keyframes={"events": ["takeoff"]})
+    with pytest.raises(PipelineInputError) as err:
+        select_keyframes(jump, task)
+    assert err.value.field == "edit.keyframes" and "'landing' does not exist" in err.value.problem
+    standing = synthetic_jump_motion([], duration=2.0)
+    with pytest.raises(PipelineInputError, match="does not exist"):
+        select_keyframes(standing, _task())
