@@ -115,3 +115,36 @@ def test_play_writes_an_mp4(exported, tmp_path):
         frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
     assert len(frames) == 5 and frames[0].shape == (240, 320, 3)
     assert frames[0].std() > 5  # a real picture, not a blank frame
+
+
+def test_export_variant_from_a_real_policy_folder(tmp_path):
+    from pipeline.envs.config import EnvConfig
+    from pipeline.export.onnx_export import export_variant
+    from pipeline.rl.checkpoint import save_policy
+    from pipeline.rl.networks import DoubleCritic, Stage1Policy
+    from pipeline.rl.stage2 import Stage2Policy
+
+    torch.manual_seed(1)
+    cfg = load_robot_config()
+    base = Stage1Policy(460, 27, [32], phase_rate=0.02)
+    base.normalizer.update(torch.randn(64, 460) * 3)  # non-trivial normalisation inside the graph
+    policy = Stage2Policy(base, [16], phase_rate=0.02)
+    policy.normalizer.update(torch.randn(64, 460))
+    meta = {"robot": cfg.name, "task": "far_jump", "variant": "adamimic", "stage": 2,
+            "joint_names": list(cfg.joint_names), "action_dim": 27, "actor_obs_dim": 460, "critic_obs_dim": 492,
+            "phase_rate": 0.02, "architecture": {"actor_hidden": [32], "critic_hidden": [16], "adapter_hidden": [16],
+                                                 "activation": "elu", "freeze_base": True, "normalize_obs": True}}
+    save_policy(tmp_path / "final", policy, DoubleCritic(492, [16]), meta)
+    data = _tracking_data()
+    result = export_variant(task="far_jump", variant="adamimic", data=data, policy_dir=tmp_path / "final",
+                            out_dir=tmp_path / "export", env_cfg=EnvConfig())
+    assert result.parity_max_abs_diff < 1e-5
+    assert sorted(p.name for p in result.folder.iterdir()) == ["config.json", "model.safetensors",
+                                                               "policy.json", "policy.onnx"]
+    assert Sim2Sim(result.folder).run_episode(1.4, max_steps=3).steps >= 1
+    with pytest.raises(PipelineInputError, match="task"):
+        export_variant(task="tennis_hit", variant="adamimic", data=data, policy_dir=tmp_path / "final",
+                       out_dir=tmp_path / "export2")
+    with pytest.raises(PipelineInputError, match="not found"):
+        export_variant(task="far_jump", variant="adamimic", data=data, policy_dir=tmp_path / "missing",
+                       out_dir=tmp_path / "export3")

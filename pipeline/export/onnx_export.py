@@ -138,3 +138,46 @@ def export_folder(module: DeployedPolicy, obs_dim: int, metadata: dict, out_dir:
             for name in HUB_FILES:
                 shutil.copy2(Path(source_dir) / name, staging / name)
     return ExportResult(out_dir, out_dir / ONNX_NAME, out_dir / METADATA_NAME, diff)
+
+
+def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out_dir: str | Path,
+                   env_cfg=None) -> ExportResult:
+    """The `export` stage: trained policy folder (models/<task>/<variant>/final) → hub-format
+    folder with policy.onnx + policy.json (models/<task>/<variant>/export)."""
+    from pipeline.export.metadata import build_metadata, observation_layout, terrain_metadata
+    from pipeline.rl.checkpoint import load_policy
+    from pipeline.robot.g1 import load_robot_config
+
+    robot = load_robot_config()
+    policy_dir = Path(policy_dir)
+    if not policy_dir.is_dir():
+        raise PipelineInputError(policy_dir, None, "trained policy folder not found (run the training stages)")
+    module, meta = load_policy(policy_dir, expect={"robot": robot.name, "joint_names": list(robot.joint_names)})
+    if meta.get("task") not in (None, task):
+        raise PipelineInputError(policy_dir / "config.json", "task",
+                                 f"policy was trained for task {meta['task']!r}, not {task!r}")
+    history = env_cfg.observations.history if env_cfg is not None else 5
+    layout = observation_layout(robot, history=history)
+    if layout["dim"] != meta["actor_obs_dim"]:
+        raise PipelineInputError(policy_dir / "config.json", "actor_obs_dim",
+                                 f"{meta['actor_obs_dim']} does not match the deployed layout ({layout['dim']})")
+    for term in layout["terms"]:
+        if term["name"] == "odometry" and env_cfg is not None:
+            term["rate_hz"] = env_cfg.observations.odometry_rate_hz
+    terrain = None
+    if data.terrain and data.terrain.get("kind", "flat") != "flat":
+        from pipeline.keyframes.terrain import terrain_builder, terrain_layout
+
+        grid = np.linspace(float(data.psi.min()), float(data.psi.max()), 41)
+        terrain = terrain_metadata(terrain_builder(data.terrain), lambda p: terrain_layout(data.terrain, p), grid)
+    terminations = {"max_tilt": 0.8, "min_base_height": 0.4, "keyframe_body_error_m": None}
+    if env_cfg is not None:
+        t = env_cfg.terminations
+        exempt = (not t.base_height_enabled) or task in t.base_height_exempt_tasks
+        terminations = {"max_tilt": t.max_tilt, "min_base_height": None if exempt else t.min_base_height,
+                        "keyframe_body_error_m": None}
+    metadata = build_metadata(task=task, variant=variant, robot=robot, data=data, obs_layout=layout,
+                              terminations=terminations, terrain=terrain)
+    metadata["policy_stage"] = meta.get("stage")
+    module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale)
+    return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir)

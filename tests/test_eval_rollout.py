@@ -1,0 +1,77 @@
+"""Evaluation rollouts: a scripted env with known errors, then a real TrackingEnv smoke run."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.evaluation.config import EvalConfig
+from pipeline.evaluation.evaluate import PolicyRunner, evaluate_policy, range_mask, rollout, spread_in_ranges
+from pipeline.evaluation.metrics import aggregate, episode_metrics
+from pipeline.evaluation.report import results_table
+
+
+class ScriptedEnv:
+    """Two worlds; world 0 runs 4-step episodes crossing keyframes at steps 2 and 4 with 0.2 m error,
+    world 1 falls after 1 step every episode."""
+
+    num_envs = 2
+
+    def reset(self):
+        self.t = np.zeros(2, int)
+        return {"actor": torch.zeros(2, 3)}
+
+    def step(self, action, dphi=None):
+        self.t += 1
+        crossed = torch.tensor([self.t[0] in (2, 4), False])
+        info = {"keyframe_crossed": crossed, "body_pos_error_w": torch.full((2, 3), 0.2),
+                "body_pos_error_local": torch.full((2, 3), 0.01), "joint_acc": torch.ones(2, 5),
+                "phase": torch.tensor(self.t / 4.0, dtype=torch.float32), "psi": torch.tensor([1.0, 2.0])}
+        truncated = torch.tensor([self.t[0] == 4, False])
+        terminated = torch.tensor([False, True])
+        self.t[truncated.numpy() | terminated.numpy()] = 0
+        return {"actor": torch.zeros(2, 3)}, {}, terminated, truncated, info
+
+
+def test_rollout_counts_every_world_equally():
+    policy = lambda obs: (torch.zeros(obs.shape[0], 27), torch.zeros(obs.shape[0]), None)  # noqa: E731
+    records = rollout(ScriptedEnv(), policy, episodes_per_env=3, num_keyframes=2)
+    assert len(records) == 6
+    by_psi = {1.0: [r for r in records if r.psi == 1.0], 2.0: [r for r in records if r.psi == 2.0]}
+    assert len(by_psi[1.0]) == 3 and len(by_psi[2.0]) == 3
+    out = aggregate([episode_metrics(r) for r in records])
+    assert out["success"] == 50.0  # the falling world never reaches its keyframes
+    assert out["e_g_bpe"] == pytest.approx(200.0) and out["e_l_bpe"] == pytest.approx(10.0)
+    assert out["e_smth"] == pytest.approx(1.0)
+
+
+def test_ranges_and_spread():
+    assert range_mask(np.array([0.5, 1.0, 1.7, 2.5]), [(0.4, 1.0), (2.0, 3.0)]).tolist() == [True, True, False, True]
+    assert spread_in_ranges({"easy": [(1.0, 2.0)]}, ["easy"], 2) == [("easy", 1.25), ("easy", 1.75)]
+
+
+def test_real_env_smoke_and_bad_range():
+    from pipeline.envs.config import EnvConfig
+    from pipeline.evaluation.evaluate import default_env_factory
+    from pipeline.rl.networks import Stage1Policy
+    from pipeline.rl.stage2 import Stage2Policy
+    from test_export import _tracking_data
+
+    torch.manual_seed(0)
+    data = _tracking_data(frames=40)
+    cfg = EvalConfig.from_dict({"episodes_per_range": 2, "runs": 2, "num_envs": 2})
+    policy = PolicyRunner(Stage2Policy(Stage1Policy(460, 27, [32], phase_rate=0.03), [16], phase_rate=0.03))
+    result = evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
+    assert [len(run["easy"]) for run in result.runs] == [2, 2]
+    assert all(1.0 <= e.psi <= 1.5 for run in result.runs for e in run["easy"])
+    assert all(1.5 <= e.psi <= 2.0 for run in result.runs for e in run["hard"])
+    from pipeline.evaluation.report import metrics_document
+
+    doc = metrics_document("far_jump", "adamimic", result.runs, result.psi_ranges)
+    assert math.isfinite(doc["ranges"]["overall"]["e_l_bpe"]["mean"])
+    assert "| adamimic |" in results_table({"adamimic": doc})
+    data.psi_ranges = {"easy": [(5.0, 6.0)], "hard": [(1.5, 2.0)]}
+    with pytest.raises(PipelineInputError, match="psi.easy"):
+        evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
