@@ -1,0 +1,136 @@
+"""SMPL skeleton FK, shape model, conversions, the human dataset and the synthetic sample."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.common import quat
+from pipeline.common.errors import PipelineInputError
+from pipeline.human import smpl
+from pipeline.human.frames import detect_up_axis, up_rotation
+from pipeline.human.importers import load_human_motion
+from pipeline.human.sample import JUMP_DISTANCE_M, SAMPLE_PATH, make_sample_clip, write_sample
+
+J = {name: i for i, name in enumerate(smpl.SMPL_JOINT_NAMES)}
+
+
+def test_neutral_table_matches_the_mannequin_calibration():
+    model = smpl.shape_model()
+    if model is None:
+        pytest.skip("mannequin-x not installed")
+    np.testing.assert_allclose(smpl.NEUTRAL_REST_JOINTS, model.joint_rest, atol=6e-5)
+    assert abs(model.height(np.zeros(10)) - smpl.NEUTRAL_HEIGHT) < 1e-3
+
+
+def test_rest_pose_joint_heights_of_the_neutral_body():
+    rest = smpl.NEUTRAL_REST_JOINTS
+    pos, rot = smpl.forward_kinematics(np.zeros((1, 22, 3)), np.zeros((1, 3)), rest)
+    np.testing.assert_allclose(pos[0], rest, atol=1e-12)
+    np.testing.assert_allclose(rot[0], np.tile([1.0, 0, 0, 0], (22, 1)), atol=1e-12)
+    sole = smpl.NEUTRAL_SOLE_Y
+    height = {name: pos[0, J[name], 1] - sole for name in J}
+    # A 1.72 m body: pelvis ~0.95 m, head joint ~1.57 m, ankles ~7.5 cm, knees ~0.48 m above the sole.
+    assert 0.90 < height["pelvis"] < 1.00
+    assert 0.58 < height["head"] - height["pelvis"] < 0.66
+    assert 0.06 < height["left_ankle"] < 0.09 and 0.06 < height["right_ankle"] < 0.09
+    assert 0.44 < height["left_knee"] < 0.52
+    assert 1.68 < smpl.NEUTRAL_HEIGHT < 1.76
+    # T-pose arm span wrist to wrist ~1.34 m; left is +x.
+    assert 1.25 < pos[0, J["left_wrist"], 0] - pos[0, J["right_wrist"], 0] < 1.45
+
+
+def test_known_rotation_knee_bend_and_root_pivot():
+    rest = smpl.NEUTRAL_REST_JOINTS
+    rv = np.zeros((1, 22, 3))
+    rv[0, J["left_knee"]] = [np.pi / 2, 0, 0]  # +90 deg about x: the shin swings backward (-z)
+    pos, _ = smpl.forward_kinematics(rv, np.zeros((1, 3)), rest)
+    shin = rest[J["left_ankle"]] - rest[J["left_knee"]]
+    expected = rest[J["left_knee"]] + np.array([shin[0], -shin[2], shin[1]])
+    np.testing.assert_allclose(pos[0, J["left_ankle"]], expected, atol=1e-12)
+    assert pos[0, J["left_ankle"], 2] < rest[J["left_knee"], 2] - 0.3
+    # The root rotates about the rest pelvis: pelvis stays at J0 + trans.
+    rv = np.zeros((1, 22, 3))
+    rv[0, 0] = [0, 0, 1.0]
+    trans = np.array([[0.5, -0.2, 0.1]])
+    pos, _ = smpl.forward_kinematics(rv, trans, rest)
+    np.testing.assert_allclose(pos[0, 0], rest[0] + trans[0], atol=1e-12)
+
+
+def test_betas_change_size_linearly():
+    if smpl.shape_model() is None:
+        pytest.skip("mannequin-x not installed")
+    tall = smpl.standing_height(np.array([-2.0] + [0] * 9))
+    short = smpl.standing_height(np.array([2.0] + [0] * 9))
+    assert abs(tall - short) > 0.1  # beta 0 is mostly stature
+    mid = smpl.rest_joints(np.zeros(10))
+    np.testing.assert_allclose(0.5 * (smpl.rest_joints(np.full(10, 1.0)) + smpl.rest_joints(np.full(10, -1.0))), mid, atol=1e-12)
+
+
+def test_height_scale_fallback():
+    rest = smpl.rest_joints(height=2 * smpl.NEUTRAL_HEIGHT)
+    np.testing.assert_allclose(rest, 2 * smpl.NEUTRAL_REST_JOINTS)
+
+
+def test_axis_conventions():
+    # y-up -> z-up: +y goes to +z, +z (front of a y-up body) goes to -y... and x stays.
+    q = up_rotation("+y")
+    np.testing.assert_allclose(quat.rotate(q, np.array([0, 1.0, 0])), [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(quat.rotate(q, np.array([1.0, 0, 0])), [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(quat.rotate(q, np.array([0, 0, 1.0])), [0, -1, 0], atol=1e-12)
+    for axis in ("+x", "-x", "-y", "+z", "-z"):
+        index, sign = {"x": 0, "y": 1, "z": 2}[axis[1]], (1 if axis[0] == "+" else -1)
+        v = np.zeros(3)
+        v[index] = sign
+        np.testing.assert_allclose(quat.rotate(up_rotation(axis), v), [0, 0, 1], atol=1e-12)
+    # Upright neutral body in its own frame is "+y" up.
+    pos, _ = smpl.forward_kinematics(np.zeros((3, 22, 3)), np.zeros((3, 3)), smpl.NEUTRAL_REST_JOINTS)
+    assert detect_up_axis(pos) == "+y"
+
+
+# --- dataset round trip ----------------------------------------------------------------------
+
+def test_human_dataset_round_trip(tmp_path):
+    pytest.importorskip("pipeline.dataset.lerobot")
+    from pipeline.human.dataset import read_human, write_human
+
+    m = load_human_motion(write_sample(tmp_path / "s.npz"))
+    write_human(tmp_path / "human", m)
+    back = read_human(tmp_path / "human")
+    for key in ("joint_pos", "joint_quat", "local_rotvec", "root_trans", "betas"):
+        assert np.array_equal(getattr(m, key), getattr(back, key)), key
+    assert (back.fps, back.name, back.height) == (m.fps, m.name, m.height)
+    with pytest.raises(PipelineInputError):
+        read_human(tmp_path / "nothing_here")
+
+
+# --- synthetic sample ------------------------------------------------------------------------
+
+def test_bundled_sample_is_what_the_script_writes(tmp_path):
+    fresh = write_sample(tmp_path / "again.npz")
+    with np.load(fresh) as a, np.load(SAMPLE_PATH) as b:
+        assert sorted(a.files) == sorted(b.files)
+        for key in a.files:
+            assert np.array_equal(a[key], b[key]), key
+        assert "SYNTHETIC" in str(b["note"])
+
+
+def test_sample_far_jump_physics():
+    clip = make_sample_clip()
+    m = load_human_motion(SAMPLE_PATH)
+    assert 3.0 <= m.duration <= 4.0 and m.fps == 30.0
+    pos = m.joint_pos
+    sole = pos[:, [7, 8, 10, 11], 2].min(axis=1)
+    # Feet land JUMP_DISTANCE_M ahead, facing +x, and stay on the floor before/after the flight.
+    feet_x = pos[:, [10, 11], 0].mean(axis=1)
+    assert abs(feet_x[-1] - feet_x[0] - JUMP_DISTANCE_M) < 0.02
+    ground = np.r_[0 : clip.takeoff_frame - 3, clip.touchdown_frame + 1 : m.num_frames]
+    assert np.all(sole[ground] < 0.09) and np.all(sole[ground] > -0.005)
+    flight = slice(clip.takeoff_frame + 1, clip.touchdown_frame)
+    assert sole[flight].max() > 0.2
+    # Ballistic pelvis: constant horizontal velocity and vertical acceleration -g in flight.
+    dt = 1.0 / m.fps
+    pelvis = pos[clip.takeoff_frame : clip.touchdown_frame + 1, 0]
+    acc = np.diff(pelvis, 2, axis=0) / dt**2
+    np.testing.assert_allclose(acc[:, 2], -9.81, atol=0.05)
+    np.testing.assert_allclose(acc[:, :2], 0.0, atol=0.05)
