@@ -55,36 +55,6 @@ video-venv: $(VIDEO_STAMP)
 
 $(VTEST):
 	mkdir -p $(dir $(VTEST))
-	cd $(dir $(VTEST)) && apt-get download opencv-doc >/dev/null && \
-	  dpkg-deb --fsys-tarfile opencv-doc_*.deb | tar -xO ./usr/share/doc/opencv-doc/examples/data/vtest.avi > vtest.avi.part && \
-	  mv vtest.avi.part vtest.avi; rm -f $(dir $(VTEST))opencv-doc_*.deb
-
-# Best effort: without them the video test is skipped (with the reason), the rest still runs.
-test-video-data:
-	-@$(MAKE) --no-print-directory $(VIDEO_STAMP) $(VTEST)
-
-test: test-video-data
-
-# --- human video import (optional extra) ----------------------------------------------------
-# mediapipe 0.10.21 needs numpy<2 and protobuf<5, so it lives in its own venv, called by
-# pipeline/human/video.py as a subprocess. Pins are what pip resolved for it on Python 3.11.
-VIDEO_VENV  := .venv-video
-VIDEO_STAMP := $(VIDEO_VENV)/.installed
-VIDEO_PKGS  := mediapipe==0.10.21 numpy==1.26.4 protobuf==4.25.9 opencv-contrib-python==4.11.0.86
-# A real clip nobody here made: vtest.avi (pedestrians) from Debian's opencv-doc, no root needed.
-VTEST       := .cache/video/vtest.avi
-
-.PHONY: video-venv test-video-data
-
-$(VIDEO_STAMP):
-	@test -x $(VIDEO_VENV)/bin/python || $(PYTHON) -m venv $(VIDEO_VENV)
-	$(VIDEO_VENV)/bin/python -m pip install --quiet $(VIDEO_PKGS)
-	@touch $(VIDEO_STAMP)
-
-video-venv: $(VIDEO_STAMP)
-
-$(VTEST):
-	mkdir -p $(dir $(VTEST))
 	cd $(dir $(VTEST)) && { apt-get download opencv-doc >/dev/null && \
 	  dpkg-deb --fsys-tarfile opencv-doc_*.deb | tar -xO ./usr/share/doc/opencv-doc/examples/data/vtest.avi > vtest.avi.part && \
 	  mv vtest.avi.part vtest.avi; status=$$?; rm -f opencv-doc_*.deb vtest.avi.part; exit $$status; }
