@@ -26,10 +26,11 @@ from mujoco import rollout as mj_rollout
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.sim.backend import PhysicsBackend, _as_numpy64
-from pipeline.sim.model import default_state_qpos, geom_bounds
+from pipeline.sim.model import default_state_qpos, geom_bounds, refresh_body_bvh
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 _CTRL_SPEC = mujoco.mjtState.mjSTATE_CTRL.value
+_STATIC_GEOM_FIELDS = ("geom_size", "geom_pos", "geom_quat")
 
 
 def state_offsets(model: mujoco.MjModel) -> tuple[int, int, int]:
@@ -172,6 +173,8 @@ class CpuBackend(PhysicsBackend):
                 rbound, half = geom_bounds(model.geom_type, model.geom_size)
                 model.geom_rbound[:] = rbound
                 model.geom_aabb[:, 3:] = half
+            if name in _STATIC_GEOM_FIELDS:
+                refresh_body_bvh(model, 0)  # terrain geoms live on the world body
 
     def get_model_field(self, name: str, world_ids) -> np.ndarray:
         self._check_field(name)

@@ -157,3 +157,37 @@ def geom_bounds(geom_type: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np
         else:
             raise PipelineInputError("backend", "geom_size", f"cannot resize geoms of type {int(t)} (only primitives)")
     return rbound, half
+
+
+def refresh_body_bvh(model: mujoco.MjModel, body: int) -> None:
+    """Recomputes the compile-time bounding-volume tree of `body` after its geoms moved or grew.
+
+    MuJoCo's midphase culls geom pairs with per-body trees (bvh_aabb, in the body's inertial
+    frame) that the compiler fills once; a terrain geom moved by set_model_field would otherwise
+    be tested against its old box and never touched. Meant for the world body (terrain): its
+    leaves match the compiler's exactly (tested); for robot links the compiler bounds some
+    primitives more tightly than this does.
+    """
+    start, count = int(model.body_bvhadr[body]), int(model.body_bvhnum[body])
+    if count <= 0:
+        return
+    rot_i = np.empty(9)
+    mujoco.mju_quat2Mat(rot_i, model.body_iquat[body])
+    rot_i = rot_i.reshape(3, 3)
+    rot_g = np.empty(9)
+    for node in range(start + count - 1, start - 1, -1):  # children follow their parent
+        geom = int(model.bvh_nodeid[node])
+        left, right = (int(c) for c in model.bvh_child[node])
+        if geom >= 0 and left < 0 and right < 0:
+            mujoco.mju_quat2Mat(rot_g, model.geom_quat[geom])
+            rg = rot_g.reshape(3, 3)
+            center_b = model.geom_pos[geom] + rg @ model.geom_aabb[geom, :3]
+            half_b = np.abs(rg) @ model.geom_aabb[geom, 3:]
+            center = rot_i.T @ (center_b - model.body_ipos[body])
+            half = np.abs(rot_i.T) @ half_b
+        else:
+            kids = [start + c for c in (left, right) if c >= 0]
+            lo = np.min([model.bvh_aabb[k, :3] - model.bvh_aabb[k, 3:] for k in kids], axis=0)
+            hi = np.max([model.bvh_aabb[k, :3] + model.bvh_aabb[k, 3:] for k in kids], axis=0)
+            center, half = (lo + hi) / 2, (hi - lo) / 2
+        model.bvh_aabb[node, :3], model.bvh_aabb[node, 3:] = center, half
