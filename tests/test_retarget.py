@@ -1,0 +1,145 @@
+"""Retargeting on the real shared clips: limits, ground, skate, jump, determinism, bad config."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.retarget import RetargetConfig, retarget
+from pipeline.retarget.config import DEFAULT_TASK_TABLE
+
+SHARED = Path(__file__).resolve().parents[2] / "shared/data/adamimic_smpl"
+CLIPS = ("far_jump", "high_jump", "jump_step_down", "jump_step_up", "tennis_hit")
+
+
+def _human(name: str, start: int = 0, stop: int | None = None):
+    from pipeline.human.importers import load_human_motion
+    from pipeline.human.motion import HumanMotion
+
+    path = SHARED / f"{name}.npz"
+    if not path.exists():
+        pytest.skip(f"{path} not present")
+    h = load_human_motion(path)
+    if start or stop:
+        sl = slice(start, stop)
+        h = HumanMotion(fps=h.fps, joint_pos=h.joint_pos[sl], joint_quat=h.joint_quat[sl],
+                        local_rotvec=h.local_rotvec[sl], root_trans=h.root_trans[sl], betas=h.betas,
+                        height=h.height, name=h.name, source=h.source)
+    return h
+
+
+@pytest.fixture(scope="module")
+def far_jump():
+    human = _human("far_jump")
+    motion, report = retarget(human, RetargetConfig(), progress=False)
+    return human, motion, report
+
+
+def test_far_jump_quality(far_jump):
+    human, motion, report = far_jump
+    assert motion.fps == 50.0
+    assert motion.num_frames == int(np.floor(human.duration * 50 + 1e-9)) + 1
+    assert report["joint_limit_violations"] == 0
+    assert report["max_penetration_mm"] <= 10.0
+    assert report["foot_skate_mm_per_frame"] <= 5.0
+    assert report["foot_skate_max_mm_per_frame"] <= 5.0
+    assert report["keypoint_err_mm"] <= 15.0
+    assert report["max_joint_vel_rad_s"] < 37.0  # fastest G1 motor
+    # Body poses are the robot's own FK of root + joints.
+    from pipeline.motion.motion import RobotKinematics
+
+    pos, _ = RobotKinematics().body_poses(motion.root_pos[::25], motion.root_quat[::25], motion.joint_pos[::25])
+    np.testing.assert_allclose(pos, motion.body_pos[::25], atol=1e-9)
+
+
+def test_far_jump_keeps_the_scaled_jump(far_jump):
+    _, _, report = far_jump
+    robot, human = report["jump"], report["human_jump_scaled"]
+    assert human["distance_m"] > 0.5  # it is a far jump
+    assert robot["distance_m"] == pytest.approx(human["distance_m"], rel=0.1)
+    assert robot["height_m"] == pytest.approx(human["height_m"], abs=0.05)
+    assert robot["duration_s"] == pytest.approx(human["duration_s"], abs=0.1)
+
+
+def test_far_jump_lands_on_the_floor(far_jump):
+    _, motion, _ = far_jump
+    # Standing at the start and after landing: feet (ankle sites) at the robot's ankle height.
+    from pipeline.retarget.core import _robot
+
+    ankle_h = _robot()[2].ankle_height
+    for name in ("left_ankle", "right_ankle"):
+        z = motion.body_pos[:, motion.body_index(name), 2]
+        assert z[0] == pytest.approx(ankle_h, abs=0.01)
+        assert z[-1] == pytest.approx(ankle_h, abs=0.01)
+
+
+@pytest.mark.parametrize("name", ["high_jump", "jump_step_up"])
+def test_other_clips_slice(name):
+    human = _human(name, 0, 120)
+    _, report = retarget(human, RetargetConfig(), progress=False)
+    assert report["joint_limit_violations"] == 0
+    assert report["max_penetration_mm"] <= 10.0
+    assert report["foot_skate_mm_per_frame"] <= 5.0
+
+
+def test_deterministic():
+    human = _human("tennis_hit", 0, 45)
+    a, ra = retarget(human, RetargetConfig(), progress=False)
+    b, rb = retarget(human, RetargetConfig(), progress=False)
+    np.testing.assert_array_equal(a.qpos(), b.qpos())
+    assert ra["keypoint_err_mm"] == rb["keypoint_err_mm"]
+
+
+def test_short_clip_is_rejected():
+    human = _human("tennis_hit", 0, 20)
+    with pytest.raises(PipelineInputError, match="needs >= 1"):
+        retarget(human, RetargetConfig(), progress=False)
+
+
+def test_default_config_round_trips():
+    cfg = RetargetConfig()
+    assert RetargetConfig.from_dict(cfg.to_dict()) == cfg
+    assert RetargetConfig.from_dict({}) == cfg
+    assert set(cfg.task_table) == set(DEFAULT_TASK_TABLE)
+
+
+@pytest.mark.parametrize(
+    "raw, key",
+    [
+        ({"solver": "ipopt"}, "solver"),
+        ({"iterations": 0}, "iterations"),
+        ({"iterations": 2.5}, "iterations"),
+        ({"damping": "x"}, "damping"),
+        ({"scale_mode": "arm_span"}, "scale_mode"),
+        ({"qp_solver": "nonexistent"}, "qp_solver"),
+        ({"trunk_blend": 2.0}, "trunk_blend"),
+        ({"bogus": 1}, "bogus"),
+        ({"contact": {"speed_threshold": -1}}, "speed_threshold"),
+        ({"contact": {"nope": 1}}, "nope"),
+        ({"task_table": {"left_toe": {"human_joint": "left_foot", "position_weight": 1, "orientation_weight": 0}}},
+         "left_toe"),
+        ({"task_table": {"pelvis": {"human_joint": "tail", "position_weight": 1, "orientation_weight": 0}}},
+         "human_joint"),
+        ({"task_table": {"pelvis": {"human_joint": "pelvis", "position_weight": -1, "orientation_weight": 0}}},
+         "position_weight"),
+        ({"task_table": {"pelvis": {"human_joint": "pelvis", "position_weight": 1}}}, "orientation_weight"),
+        ({"task_table": {"torso": {"human_joint": "spine1", "position_weight": 1, "orientation_weight": 0}}},
+         "task_table"),
+    ],
+)
+def test_bad_config_names_the_key(raw, key):
+    with pytest.raises(PipelineInputError) as err:
+        RetargetConfig.from_dict(raw, where="retarget")
+    assert key in str(err.value)
+    assert str(err.value).startswith("retarget")
+
+
+def test_fixed_scale_changes_size():
+    human = _human("tennis_hit", 0, 40)
+    small = replace(RetargetConfig(), scale_mode="fixed", fixed_scale=0.6)
+    _, r = retarget(human, small, progress=False)
+    assert r["scale"] == 0.6
