@@ -104,6 +104,10 @@ def load_tracking_data(path: str | Path) -> TrackingData:
         name=extra.get("motion_name", extra.get("task", "motion")),
         source=str(path),
     )
+    for key in ("root_quat", "body_quat"):  # keep the stored unit quaternions bit for bit
+        stored = np.asarray(first[key], dtype=np.float64)
+        if np.allclose(stored, getattr(motion, key), rtol=0.0, atol=1e-12):
+            setattr(motion, key, stored.copy())
     return TrackingData(
         task=extra["task"],
         motion=motion,

@@ -119,9 +119,14 @@ def sample_psi(ranges, num_samples: int, seed: int | None = None) -> np.ndarray:
 
 
 def apply_offsets(motion: Motion, offsets: np.ndarray, name: str | None = None) -> Motion:
-    """The motion with every frame's root and tracked bodies translated by offsets (T, 3)."""
-    return replace(motion, root_pos=motion.root_pos + offsets, body_pos=motion.body_pos + offsets[:, None, :],
-                   name=name or motion.name)
+    """The motion with every frame's root and tracked bodies translated by offsets (T, 3);
+    rotations and joints are the original arrays bit for bit."""
+    edited = replace(motion, root_pos=motion.root_pos + offsets, body_pos=motion.body_pos + offsets[:, None, :],
+                     name=name or motion.name)
+    # Motion re-normalises quaternions on construction, which can move their last bit: keep the
+    # original (already unit and continuous) ones so the edit is a pure translation.
+    edited.root_quat, edited.body_quat = motion.root_quat.copy(), motion.body_quat.copy()
+    return edited
 
 
 def build_tracking_data(motion: Motion, task: TaskConfig, keyframes: KeyframeTable, mode: str = "edit",
