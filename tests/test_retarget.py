@@ -143,3 +143,19 @@ def test_fixed_scale_changes_size():
     small = replace(RetargetConfig(), scale_mode="fixed", fixed_scale=0.6)
     _, r = retarget(human, small, progress=False)
     assert r["scale"] == 0.6
+
+
+def test_preview_video(tmp_path):
+    import cv2
+
+    from pipeline.retarget import write_preview
+
+    human = _human("tennis_hit", 0, 36)
+    motion, report = retarget(human, RetargetConfig(), progress=False)
+    out = write_preview(human, motion, tmp_path / "preview.mp4", scale=report["scale"], width=320, height=180,
+                        progress=False)
+    cap = cv2.VideoCapture(str(out))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == motion.num_frames
+    ok, frame = cap.read()
+    assert ok and frame.shape == (180, 320, 3) and frame.std() > 5  # not a blank image
+    assert [p.name for p in tmp_path.iterdir()] == ["preview.mp4"]  # no temporary left behind
