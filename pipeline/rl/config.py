@@ -82,7 +82,7 @@ class PPOConfig:
     clip: float = 0.2
     entropy_coef: float = 0.01
     value_coef: float = 1.0
-    value_clip: bool = True
+    value_clip: bool = False  # clipping at 0.2 would crawl on sparse returns of order 100
     learning_rate: float = 1e-3
     adaptive_lr: bool = True
     kl_target: float = 0.01
