@@ -159,3 +159,35 @@ def test_preview_video(tmp_path):
     ok, frame = cap.read()
     assert ok and frame.shape == (180, 320, 3) and frame.std() > 5  # not a blank image
     assert [p.name for p in tmp_path.iterdir()] == ["preview.mp4"]  # no temporary left behind
+
+
+def test_placo_solver_same_table():
+    """placo reads the URDF written from the MuJoCo model; same task table, same guarantees."""
+    human = _human("tennis_hit", 0, 45)
+    motion, report = retarget(human, replace(RetargetConfig(), solver="placo"), progress=False)
+    assert report["solver"] == "placo"
+    assert report["joint_limit_violations"] == 0
+    assert report["max_penetration_mm"] <= 10.0
+    assert report["foot_skate_mm_per_frame"] <= 5.0
+    assert report["keypoint_err_mm"] <= 30.0
+
+
+def test_urdf_matches_mujoco_kinematics():
+    import placo
+
+    from pipeline.retarget.core import _robot
+    from pipeline.retarget.ik import _pose_matrix
+    from pipeline.retarget.urdf import mjcf_to_urdf
+    from pipeline.robot.g1 import default_qpos
+
+    model, kin, _ = _robot()
+    robot = placo.RobotWrapper("", 0, mjcf_to_urdf(model))
+    q = default_qpos()
+    q[7:] += np.linspace(-0.3, 0.3, len(q) - 7)
+    robot.set_T_world_frame("pelvis", _pose_matrix(q[3:7], q[:3]))
+    for name, value in zip(kin.joint_names, q[7:]):
+        robot.set_joint(name, float(value))
+    robot.update_kinematics()
+    pos, _ = kin.body_poses(q[:3], q[3:7], q[7:])
+    placo_pos = np.array([robot.get_T_world_frame(f"track_{n}")[:3, 3] for n in kin.body_names])
+    np.testing.assert_allclose(placo_pos, pos[0], atol=1e-9)

@@ -152,6 +152,7 @@ class PlacoRetargeter:
         for name, task in self.tasks.items():
             task.T_world_frame = _pose_matrix(targets[name][:4], targets[name][4:])
         self.solver.enable_velocity_limits(not first)
+        self.solver.dt = self.frame_dt / iterations  # the velocity limit holds per frame, not per step
         for _ in range(iterations):
             self.solver.solve(True)
             self.robot.update_kinematics()
