@@ -5,8 +5,6 @@
 """
 
 from pipeline.sim.backend import PhysicsBackend, make_backend
-from pipeline.sim.benchmark import backend_steps_per_s, raw_rollout_steps_per_s
 from pipeline.sim.model import add_sim_sensors, build_sim_model
 
-__all__ = ["PhysicsBackend", "make_backend", "build_sim_model", "add_sim_sensors",
-           "raw_rollout_steps_per_s", "backend_steps_per_s"]
+__all__ = ["PhysicsBackend", "make_backend", "build_sim_model", "add_sim_sensors"]

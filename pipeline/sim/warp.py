@@ -172,7 +172,7 @@ class WarpBackend(PhysicsBackend):
             raise PipelineInputError("backend", name, f"values must broadcast to ({len(ids)}, {template.shape}): {err}")
         view = self._field(name)
         index = torch.as_tensor(ids, device=self.device)
-        view[index] = torch.as_tensor(np.ascontiguousarray(values), dtype=view.dtype, device=self.device).reshape(len(ids), *view.shape[1:])
+        view[index] = torch.as_tensor(np.array(values), dtype=view.dtype, device=self.device).reshape(len(ids), *view.shape[1:])
         if name == "geom_size":
             types = self.model.geom_type
             rbound = np.empty((len(ids), self.model.ngeom))
