@@ -149,7 +149,7 @@ class EnvConfig:
 
     @classmethod
     def from_dict(cls, raw: dict | None, where: str = "env") -> "EnvConfig":
-        cfg = _build(cls, raw or {}, where)
+        cfg = _build(cls, raw or {}, where, cls())
         cfg.validate(where)
         return cfg
 
@@ -193,8 +193,9 @@ class EnvConfig:
             bad("torch_threads", "must be >= 0")
 
 
-def _build(cls, raw, where: str):
-    """Recursively builds dataclass `cls` from a mapping, checking keys and scalar types."""
+def _build(cls, raw, where: str, base):
+    """`base` (an instance of dataclass `cls`, holding the defaults) with the keys of mapping `raw`
+    replaced, recursively, checking keys and scalar types."""
     if not isinstance(raw, dict):
         raise PipelineInputError(where.split(".")[0], where, f"expected a mapping, got {type(raw).__name__}")
     hints = typing.get_type_hints(cls)
@@ -204,14 +205,14 @@ def _build(cls, raw, where: str):
         raise PipelineInputError(where.split(".")[0], f"{where}.{unknown[0]}", f"unknown key (known: {sorted(names)})")
     kwargs = {}
     for key, value in raw.items():
-        kwargs[key] = _convert(hints[key], value, f"{where}.{key}")
-    return cls(**kwargs)
+        kwargs[key] = _convert(hints[key], value, f"{where}.{key}", getattr(base, key))
+    return dataclasses.replace(base, **kwargs)
 
 
-def _convert(hint, value, key: str):
+def _convert(hint, value, key: str, default=None):
     source = key.split(".")[0]
     if dataclasses.is_dataclass(hint):
-        return _build(hint, value, key)
+        return _build(hint, value, key, default)
     origin = typing.get_origin(hint)
     if origin is list:
         if not isinstance(value, (list, tuple)):

@@ -21,19 +21,22 @@ import math
 
 import mujoco
 import numpy as np
+import torch
 
 from pipeline.envs.config import Range, RandomizationConfig
 
 
 def restitution_to_dampratio(e: np.ndarray) -> np.ndarray:
-    e = np.clip(np.asarray(e, dtype=np.float64), 1e-9, 1.0)
-    log_e = np.log(e)
-    return np.minimum(-log_e / np.sqrt(math.pi**2 + log_e**2), 1.0)
+    e = np.asarray(e, dtype=np.float64)
+    log_e = np.log(np.clip(e, 1e-300, 1.0))
+    zeta = -log_e / np.sqrt(math.pi**2 + log_e**2)
+    return np.where(e <= 0.0, 1.0, np.minimum(zeta, 1.0))  # no bounce: critically damped
 
 
 class DomainRandomizer:
-    def __init__(self, cfg: RandomizationConfig, model: mujoco.MjModel, backend, rng: np.random.Generator):
-        self.cfg, self.backend, self.rng = cfg, backend, rng
+    def __init__(self, cfg: RandomizationConfig, model: mujoco.MjModel, backend):
+        self.cfg, self.backend = cfg, backend
+        self.rng = np.random.default_rng(0)
         self.base = {name: np.array(getattr(model, name), dtype=np.float64) for name in (
             "body_mass", "body_inertia", "body_ipos", "geom_friction", "geom_solref",
             "actuator_gainprm", "actuator_biasprm")}
@@ -43,7 +46,6 @@ class DomainRandomizer:
         self.robot_geoms = np.flatnonzero(~world_body)
         self.feet_geoms = np.flatnonzero((model.geom_priority > 0) & ~world_body)
         self.links = np.array([b for b in range(1, model.nbody) if b != self.trunk])
-        self.applied: dict[str, np.ndarray] = {}  # last values written, per field: (N, ...) for tests/logs
 
     def _on(self, r: Range) -> bool:
         return self.cfg.enabled and r.enabled
@@ -60,14 +62,13 @@ class DomainRandomizer:
         return self.rng.uniform(r.low, r.high, size)
 
     def _write(self, name: str, world_ids: np.ndarray, values: np.ndarray) -> None:
-        self.backend.set_model_field(name, world_ids, values)
-        self.applied.setdefault(name, {})
-        for w, v in zip(world_ids.tolist(), values):
-            self.applied[name][w] = v
+        self.backend.set_model_field(name, world_ids, values)  # read back: backend.get_model_field
 
     def apply(self, world_ids: np.ndarray) -> np.ndarray:
         """Samples and writes every enabled term for `world_ids`; returns their control delays (s)."""
         c, n = self.cfg, len(world_ids)
+        # seeded from torch's global RNG so the whole env replays from one RNG state
+        self.rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,))))
         tile = lambda name: np.repeat(self.base[name][None], n, 0)  # noqa: E731
         if self._on(c.trunk_mass_add) or self._on(c.link_mass_scale):
             mass, inertia = tile("body_mass"), tile("body_inertia")

@@ -66,11 +66,12 @@ class TrackingEnv:
         self.control_dt = self.robot.control_dt
         self.sim_dt = self.control_dt / self.decimation
 
-        self._gen = torch.Generator(device="cpu").manual_seed(seed)
-        self._np_rng = np.random.default_rng(seed)
+        # All randomness comes from torch's global RNG (seeded by the caller): a trainer that saves
+        # and restores it replays the same episodes after a resume. `seed` stays for the contract.
+        self.seed = seed
         self._precompute_reference()
         self._precompute_robot()
-        self.randomizer = DomainRandomizer(cfg.randomization, self.model, self.backend, self._np_rng)
+        self.randomizer = DomainRandomizer(cfg.randomization, self.model, self.backend)
         self._terrain_fields = self._precompute_terrain()
 
         self.actor_obs_dim = FRAME_OBS_DIM * cfg.observations.history
@@ -211,6 +212,24 @@ class TrackingEnv:
         self._reset_worlds(self.arange)
         return self._obs_dict()
 
+    def obs_layout(self) -> dict:
+        """Where each quantity sits in one history step of the actor observation (oldest step first,
+        newest last) and in the critic's privileged tail, as [start, stop) pairs."""
+        j = self.num_joints
+        names = [("base_ang_vel", 3), ("projected_gravity", 3), ("joint_pos_rel", j), ("joint_vel", j),
+                 ("prev_action", j), ("phase", 1), ("psi", 1), ("odometry", 3)]
+        priv = [("base_lin_vel", 3), ("ref_joint_pos", j), ("base_height", 1), ("phase_to_next_keyframe", 1)]
+
+        def spans(items, start=0):
+            out = {}
+            for name, size in items:
+                out[name] = [start, start + size]
+                start += size
+            return out
+
+        return {"history": self.cfg.observations.history, "frame_dim": FRAME_OBS_DIM,
+                "actor_frame": spans(names), "critic_privileged": spans(priv, self.actor_obs_dim)}
+
     def set_termination_threshold(self, value: float) -> float:
         c = self.cfg.terminations.keyframe_error
         self.termination_threshold = float(min(max(value, c.min), c.max))
@@ -321,8 +340,9 @@ class TrackingEnv:
             "body_pos_error_w": err2_w.sqrt(),
             "body_pos_error_local": local_err2.sqrt(),
             "joint_acc": joint_acc,
-            "phase": phase.clone(),
+            "phase": phase.to(torch.float32),
             "frame": frame.clone(),
+            "joint_pos": joint_pos.clone(),
             "psi": self.psi[self.sample],
             "sample": self.sample.clone(),
             "terms": terms,
@@ -360,7 +380,7 @@ class TrackingEnv:
             return
         ids = due.nonzero().squeeze(-1)
         qvel = self.backend.qvel[ids].clone()
-        kick = torch.rand(ids.numel(), 3, generator=self._gen) * 2 - 1
+        kick = torch.rand(ids.numel(), 3) * 2 - 1
         qvel[:, 0:2] += push.max_vel_xy * kick[:, :2]
         qvel[:, 5] += push.max_vel_yaw * kick[:, 2]
         self.backend.set_state(ids, self.backend.qpos[ids].clone(), qvel)
@@ -368,7 +388,7 @@ class TrackingEnv:
 
     def _push_interval(self, n: int) -> torch.Tensor:
         lo, hi = self.cfg.randomization.push.interval_s
-        return lo + (hi - lo) * torch.rand(n, generator=self._gen)
+        return lo + (hi - lo) * torch.rand(n)
 
     def _frame_features(self, ids, gravity=None):
         """The 92-d actor observation of one step for worlds `ids` (None: all)."""
@@ -381,7 +401,7 @@ class TrackingEnv:
         fresh = quat_rotate_inverse(sel(self.odom_origin_quat), qpos[:, 0:3] - sel(self.odom_origin))
         std = self.cfg.observations.odometry_noise_std
         if std > 0:
-            fresh = fresh + std * torch.randn(fresh.shape, generator=self._gen)
+            fresh = fresh + std * torch.randn(fresh.shape)
         odom = torch.where((step % self.odom_every == 0)[:, None], fresh, sel(self.odometry))
         if ids is None:
             self.odometry = odom
@@ -407,11 +427,11 @@ class TrackingEnv:
 
     def _reset_worlds(self, ids: torch.Tensor) -> None:
         n, dev = ids.numel(), self.device
-        sample = torch.randint(self.data.num_samples, (n,), generator=self._gen).to(dev)
+        sample = torch.randint(self.data.num_samples, (n,)).to(dev)
         frame = torch.zeros(n, dtype=torch.long, device=dev)
         if self.num_keyframes > 0 and self.cfg.rsi_prob > 0:
-            rsi = torch.rand(n, generator=self._gen).to(dev) < self.cfg.rsi_prob
-            k = torch.randint(self.num_keyframes, (n,), generator=self._gen).to(dev)
+            rsi = torch.rand(n).to(dev) < self.cfg.rsi_prob
+            k = torch.randint(self.num_keyframes, (n,)).to(dev)
             # the last frame would time out at once: RSI only from keyframes before it
             rsi &= self.kf_frames[k] < self.num_frames - 1
             frame = torch.where(rsi, self.kf_frames[k], frame)

@@ -1,0 +1,358 @@
+"""TrackingEnv on the CPU backend: shapes, phase, keyframe-only sparse rewards, reward values against
+hand computations from the physics state, terminations, reset/RSI, domain randomisation, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.envs.config import EnvConfig
+from pipeline.envs.torch_math import projected_gravity, quat_angle_sq
+from pipeline.envs.tracking_env import FRAME_OBS_DIM, TrackingEnv
+from pipeline.keyframes.tracking_data import TrackingData
+from pipeline.motion.motion import RobotKinematics
+
+FRAMES = 61  # 1.2 s at 50 fps
+KEYFRAMES = np.array([10, 25, 40])
+N = 4
+
+
+@pytest.fixture(scope="module")
+def data() -> TrackingData:
+    kin = RobotKinematics()
+    rc = kin.config
+    t = np.arange(FRAMES) / 50.0
+    joints = np.tile(rc.default_joint_pos, (FRAMES, 1))
+    joints[:, rc.joint_names.index("left_elbow_joint")] += 0.3 * np.sin(2 * np.pi * t)
+    root = np.tile([0.0, 0.0, rc.default_root_height], (FRAMES, 1))
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (FRAMES, 1))
+    motion = kin.motion(50.0, root, quat, joints, name="stand")
+    psi = np.array([0.0, 0.05, 0.1])
+    offsets = np.zeros((3, len(KEYFRAMES), 3))
+    offsets[:, :, 0] = psi[:, None]  # keyframe targets moved forward by ψ
+    return TrackingData(task="stand", motion=motion, keyframe_frames=KEYFRAMES, keyframe_labels=("", "apex", ""),
+                        sparse_scale=np.array([1.0, 50.0, 1.0]), edited=np.ones(3, bool), psi=psi,
+                        keyframe_offsets=offsets)
+
+
+def quiet_cfg(**extra) -> EnvConfig:
+    """No randomisation, no RSI, no odometry noise: a standing robot tracks the clip to the end."""
+    raw = {"randomization": {"enabled": False}, "rsi_prob": 0.0, "observations": {"odometry_noise_std": 0.0}}
+    for key, value in extra.items():
+        raw[key] = {**raw.get(key, {}), **value} if isinstance(value, dict) else value
+    return EnvConfig.from_dict(raw)
+
+
+def hold(env) -> torch.Tensor:
+    return torch.zeros(env.num_envs, env.action_dim)
+
+
+def test_shapes_and_dtypes(data):
+    env = TrackingEnv(EnvConfig(), data, num_envs=N)
+    obs = env.reset()
+    assert env.action_dim == 27 and env.actor_obs_dim == 5 * FRAME_OBS_DIM == 460
+    assert obs["actor"].shape == (N, 460) and obs["critic"].shape == (N, env.critic_obs_dim)
+    assert obs["actor"].dtype == obs["critic"].dtype == torch.float32
+    assert torch.equal(obs["critic"][:, :460], obs["actor"])
+    obs, rew, term, trunc, info = env.step(torch.randn(N, 27) * 0.1)
+    assert rew["sparse"].shape == rew["dense"].shape == (N,) and rew["dense"].dtype == torch.float32
+    assert term.dtype == trunc.dtype == torch.bool and term.shape == (N,)
+    assert info["keyframe_crossed"].dtype == torch.bool
+    assert info["body_pos_error_w"].shape == info["body_pos_error_local"].shape == (N, 17)
+    assert info["joint_acc"].shape == (N, 27) and info["phase"].shape == info["psi"].shape == (N,)
+    assert info["final_obs"]["critic"].shape == obs["critic"].shape
+    layout = env.obs_layout()
+    assert layout["actor_frame"]["odometry"][1] == FRAME_OBS_DIM
+    assert layout["critic_privileged"]["phase_to_next_keyframe"][1] == env.critic_obs_dim
+    assert all(torch.isfinite(v).all() for v in obs.values())
+
+
+def test_observation_history_and_content(data):
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    obs0 = env.reset()
+    frames0 = obs0["actor"].reshape(N, 5, FRAME_OBS_DIM)
+    assert torch.equal(frames0[:, 0], frames0[:, 4])  # history filled with the first frame at reset
+    action = torch.full((N, 27), 0.1)
+    obs1, *_ = env.step(action)
+    frames1 = obs1["actor"].reshape(N, 5, FRAME_OBS_DIM)
+    assert torch.equal(frames1[:, :4], frames0[:, 1:])  # shifted by one
+    new = frames1[:, 4]
+    b = env.backend
+    lay = env.obs_layout()["actor_frame"]
+    sl = lambda k: slice(*lay[k])  # noqa: E731
+    assert torch.allclose(new[:, sl("base_ang_vel")], b.qvel[:, 3:6])
+    assert torch.allclose(new[:, sl("projected_gravity")], projected_gravity(b.qpos[:, 3:7]))
+    assert torch.allclose(new[:, sl("joint_pos_rel")], b.qpos[:, 7:] - env.default_joint_pos)
+    assert torch.allclose(new[:, sl("prev_action")], action)
+    assert torch.allclose(new[:, sl("phase")].squeeze(-1), torch.full((N,), env.dphi), atol=1e-6)
+    assert torch.allclose(new[:, sl("psi")].squeeze(-1), env.psi[env.sample])
+    priv = obs1["critic"][:, env.actor_obs_dim:]
+    assert torch.allclose(priv[:, 3:30], env.ref_joint_pos[1].expand(N, -1))
+
+
+def test_odometry_refreshes_at_10hz(data):
+    env = TrackingEnv(quiet_cfg(observations={"odometry_noise_std": 0.05}), data, num_envs=N)
+    assert env.odom_every == 5
+    env.reset()
+    lay = slice(*env.obs_layout()["actor_frame"]["odometry"])
+    values = []
+    for _ in range(11):
+        obs, *_ = env.step(hold(env))
+        values.append(obs["actor"][:, -FRAME_OBS_DIM:][:, lay].clone())
+    changed = [not torch.equal(values[i], values[i - 1]) for i in range(1, 11)]
+    # episode steps 1..11: refreshes at steps 5 and 10 -> changes seen at list indices 4 and 9
+    assert changed == [i in (4, 9) for i in range(1, 11)]
+
+
+def test_phase_advance_and_adaptive_bounds(data):
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    env.reset()
+    dphi = env.dphi
+    assert math.isclose(dphi, 0.02 / ((FRAMES - 1) / 50.0))
+    offsets = torch.tensor([0.0, 10.0, -10.0, 0.5 * dphi])
+    *_, info = env.step(hold(env), offsets)
+    expected = torch.tensor([dphi, 2 * dphi, 0.25 * dphi, 1.5 * dphi], dtype=torch.float32)
+    assert torch.allclose(info["phase"], expected, atol=1e-7)
+    assert torch.equal(info["frame"], torch.round(expected.double() * (FRAMES - 1)).long())
+
+
+def test_sparse_rewards_only_on_keyframe_crossings(data):
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    env.reset()
+    sparse_steps, crossed_steps = set(), set()
+    for step in range(1, FRAMES):
+        _, rew, term, trunc, info = env.step(hold(env))
+        assert not term.any()
+        nonzero = rew["sparse"] != 0
+        assert torch.equal(nonzero, info["keyframe_crossed"])  # never elsewhere, always there
+        assert nonzero.all() or not nonzero.any()
+        if nonzero.any():
+            sparse_steps.add(step)
+        if info["keyframe_crossed"].any():
+            crossed_steps.add(step)
+            assert (info["keyframe_index"] >= 0).all()
+        assert bool(trunc.all()) == (step == FRAMES - 1)
+    assert sparse_steps == crossed_steps == set(KEYFRAMES.tolist())
+
+
+def test_keyframe_crossing_with_fast_phase_and_sparse_values(data):
+    """Doubling Δφ reaches frame 10 at step 5; the sparse reward there is the hand-computed kernel sum
+    against the keyframe target of the world's ψ sample, times the semantic scale at the apex."""
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    env.reset()
+    w, s2 = env.cfg.rewards.weights, env.cfg.rewards.sigma2
+    fast = torch.full((N,), 10.0)
+    hits = {}
+    for step in range(1, 21):
+        _, rew, _, _, info = env.step(hold(env), fast)
+        if info["keyframe_crossed"].any():
+            k = int(info["keyframe_index"][0])
+            pos, quat = env.backend.site_pos.clone(), env.backend.site_quat.clone()
+            target = torch.as_tensor(data.motion.body_pos[KEYFRAMES[k]], dtype=torch.float32)
+            target = target + torch.as_tensor(data.keyframe_offsets[:, k], dtype=torch.float32)[env.sample][:, None]
+            err2 = ((pos - target) ** 2).sum(-1)
+            lower = torch.tensor([b in env.cfg.rewards.lower_body for b in data.motion.body_names])
+            sig = torch.where(lower, torch.tensor(s2.lower_body_pos), torch.tensor(s2.upper_body_pos))
+            r_pos = torch.exp(-(err2 / sig).mean(-1))
+            tq = torch.as_tensor(data.motion.body_quat[KEYFRAMES[k]], dtype=torch.float32)
+            r_rot = torch.exp(-quat_angle_sq(quat, tq.expand_as(quat)).mean(-1) / s2.body_rot)
+            feet = [data.motion.body_names.index(f) for f in ("left_ankle", "right_ankle")]
+            r_feet = torch.exp(-err2[:, feet].mean(-1) / s2.feet_pos)
+            expected = data.sparse_scale[k] * (w.global_body_pos * r_pos + w.global_body_rot * r_rot
+                                               + w.global_feet_pos * r_feet)
+            assert torch.allclose(rew["sparse"], expected, rtol=1e-4)
+            hits[step] = k
+    assert hits == {5: 0, 13: 1, 20: 2}  # frames 10, 26 (crosses 25), 40
+
+
+def test_dense_reward_terms_against_hand_values(data):
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    env.reset()
+    a1, a2 = torch.full((N, 27), 0.05), torch.full((N, 27), -0.05)
+    env.step(a1)
+    qvel_before = env.backend.qvel[:, 6:].clone()
+    _, rew, _, _, info = env.step(a2)
+    b, t = env.backend, info["terms"]
+    frame = 2
+    joint = b.qpos[:, 7:]
+    ref_joint = torch.as_tensor(data.motion.joint_pos[frame], dtype=torch.float32)
+    assert torch.allclose(t["local_joint_pos"], torch.exp(-((joint - ref_joint) ** 2).mean(-1)), rtol=1e-5)
+    acc = (b.qvel[:, 6:] - qvel_before) / 0.02
+    assert torch.allclose(t["joint_acc"], (acc**2).sum(-1), rtol=1e-4)
+    assert torch.allclose(info["joint_acc"], acc, rtol=1e-4, atol=1e-3)
+    assert torch.allclose(t["joint_vel"], (b.qvel[:, 6:] ** 2).sum(-1), rtol=1e-5)
+    assert torch.allclose(t["action_rate"], torch.full((N,), 27 * 0.1**2), rtol=1e-5)
+    assert torch.allclose(t["smoothness"], torch.full((N,), 27 * (-0.05 - 0.1) ** 2), rtol=1e-5)  # a2-2a1+0
+    assert torch.allclose(t["torques"], (b.actuator_force**2).sum(-1), rtol=1e-5)
+    w = env.cfg.rewards.weights
+    total = sum(getattr(w, k) * v for k, v in t.items())
+    assert torch.allclose(rew["dense"], total)
+    # local body position: root-frame positions against the reference's, with per-body σ²
+    root_pos, root_quat = b.qpos[:, :3], b.qpos[:, 3:7]
+    from pipeline.common import quat as npq
+
+    local = npq.inverse_rotate(root_quat[:, None].double().numpy(), (b.site_pos - root_pos[:, None]).double().numpy())
+    ref_local = npq.inverse_rotate(data.motion.root_quat[frame], data.motion.body_pos[frame] - data.motion.root_pos[frame])
+    err2 = ((local - ref_local) ** 2).sum(-1)
+    inv = np.array([1 / 0.1 if n in env.cfg.rewards.lower_body else 1 / 0.03 for n in data.motion.body_names])
+    assert np.allclose(t["local_body_pos"].numpy(), np.exp(-(err2 * inv).mean(-1)), rtol=1e-4)
+    assert torch.allclose(info["body_pos_error_local"] ** 2, torch.as_tensor(err2, dtype=torch.float32), atol=1e-5)
+
+
+def test_terminations(data):
+    # timeout: truncated, not terminated, at the motion's end (checked in the crossing test too)
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    env.reset()
+    # tilt: a robot lying on its side (projected gravity xy = 1)
+    qpos = env.backend.qpos.clone()
+    qpos[0, 3:7] = torch.tensor([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])
+    qpos[0, 2] = 1.0
+    env.backend.set_state(torch.tensor([0]), qpos[:1], env.backend.qvel[:1].clone())
+    _, rew, term, trunc, _ = env.step(hold(env))
+    assert term.tolist() == [True, False, False, False] and not trunc.any()
+    assert rew["sparse"][0] == pytest.approx(-200.0) and (rew["sparse"][1:] == 0).all()
+    assert env.phase[0] == 0  # auto-reset
+
+    # base height: the threshold above a standing robot terminates everyone, unless the task is exempt
+    env = TrackingEnv(quiet_cfg(terminations={"min_base_height": 2.0}), data, num_envs=N)
+    env.reset()
+    assert env.step(hold(env))[2].all()
+    env = TrackingEnv(quiet_cfg(terminations={"min_base_height": 2.0, "base_height_exempt_tasks": ["stand"]}),
+                      data, num_envs=N)
+    env.reset()
+    assert not env.step(hold(env))[2].any()
+
+
+def test_keyframe_error_termination_and_curriculum(data):
+    far = TrackingData(**{**data.__dict__, "keyframe_offsets": data.keyframe_offsets + np.array([0.0, 0.0, 1.0])})
+    env = TrackingEnv(quiet_cfg(), far, num_envs=N)
+    assert env.termination_threshold == 1.5
+    assert env.update_curriculum(0.0) == 1.5
+    assert env.update_curriculum(0.25) == pytest.approx(1.05)
+    assert env.update_curriculum(0.5) == pytest.approx(0.6)
+    assert env.update_curriculum(0.7) == pytest.approx(0.6)
+    assert env.update_curriculum(1.0) == pytest.approx(2.0)
+    assert env.set_termination_threshold(0.1) == 0.6 and env.set_termination_threshold(5.0) == 2.0
+    env.set_termination_threshold(0.6)  # keyframes sit 1 m above the robot: the first crossing fails
+    env.reset()
+    for step in range(1, KEYFRAMES[0] + 1):
+        _, rew, term, _, info = env.step(hold(env))
+        assert bool(term.any()) == (step == KEYFRAMES[0])
+    assert term.all() and info["keyframe_crossed"].all()
+    assert (rew["sparse"] < -190).all()  # −200 plus the (small) keyframe tracking reward
+    env.set_termination_threshold(2.0)  # 1 m error passes at the loosest threshold
+    env.reset()
+    for _ in range(KEYFRAMES[0]):
+        term = env.step(hold(env))[2]
+    assert not term.any()
+
+
+def test_reset_state_init_from_keyframes(data):
+    env = TrackingEnv(quiet_cfg(rsi_prob=1.0), data, num_envs=16)
+    torch.manual_seed(3)
+    env.reset()
+    frames = env.frame.numpy()
+    assert set(frames.tolist()) <= set(KEYFRAMES.tolist()) and len(set(frames.tolist())) > 1
+    assert np.allclose(env.phase.numpy(), frames / (FRAMES - 1))
+    k = np.searchsorted(KEYFRAMES, frames)
+    assert np.array_equal(env.next_kf.numpy(), k + 1)
+    sample = env.sample.numpy()
+    root = data.motion.root_pos[frames] + data.keyframe_offsets[sample, k]  # latest keyframe's ψ offset
+    assert np.allclose(env.backend.qpos[:, :3].numpy(), root, atol=1e-5)
+    assert np.allclose(env.backend.qpos[:, 7:].numpy(), data.motion.joint_pos[frames], atol=1e-5)
+    assert np.allclose(env.backend.qvel[:, 6:].numpy(), data.motion.joint_vel[frames], atol=1e-4)
+
+
+def test_domain_randomisation_ranges_applied(data):
+    n = 32
+    env = TrackingEnv(EnvConfig(), data, num_envs=n)
+    env.reset()
+    b, m, ids = env.backend, env.model, np.arange(n)
+    trunk, base = m.body("torso_link").id, m.body("pelvis").id
+    mass = b.get_model_field("body_mass", ids)
+    added = mass[:, trunk] - m.body_mass[trunk]
+    assert added.min() >= -2.0 and added.max() <= 5.0 and added.std() > 0.5
+    others = [i for i in range(1, m.nbody) if i != trunk]
+    ratio = mass[:, others] / m.body_mass[others]
+    assert ratio.min() >= 0.9 and ratio.max() <= 1.1 and ratio.std() > 0.01
+    inertia = b.get_model_field("body_inertia", ids)
+    assert np.allclose(inertia[:, others] / m.body_inertia[others], ratio[..., None])
+    com = b.get_model_field("body_ipos", ids)[:, base] - m.body_ipos[base]
+    assert np.abs(com).max() <= 0.1 and com.std() > 0.01
+    friction = b.get_model_field("geom_friction", ids)[:, m.geom_bodyid > 0, 0]
+    assert friction.min() >= 0.1 and friction.max() <= 1.1 and friction.std() > 0.1
+    feet = np.flatnonzero((m.geom_priority > 0) & (m.geom_bodyid > 0))
+    damp = b.get_model_field("geom_solref", ids)[:, feet, 1]
+    assert damp.min() >= 0.59 and damp.max() <= 1.0  # restitution 0.1 <-> ζ ≈ 0.59
+    kp = b.get_model_field("actuator_gainprm", ids)[..., 0] / m.actuator_gainprm[:, 0]
+    kd = b.get_model_field("actuator_biasprm", ids)[..., 2] / m.actuator_biasprm[:, 2]
+    assert kp.min() >= 0.85 * 0.9 and kp.max() <= 1.15 * 1.1 and kp.std() > 0.02
+    assert kd.min() >= 0.85 * 0.9 and kd.max() <= 1.15 * 1.1
+    bias_p = b.get_model_field("actuator_biasprm", ids)[..., 1] / m.actuator_biasprm[:, 1]
+    assert np.allclose(bias_p, kp)  # position actuator stays a PD about the target
+    delay = env.delay_substeps.numpy()
+    assert delay.min() >= 0 and delay.max() <= 20 and len(set(delay.tolist())) > 3
+    lag = env.delay_lag.numpy()
+    sub = np.arange(4)
+    assert np.array_equal(lag, np.maximum(0, np.ceil((delay[:, None] - sub) / 4)).astype(int))
+
+
+def test_randomisation_terms_switch_off(data):
+    cfg = EnvConfig.from_dict({"randomization": {"friction": {"enabled": False}, "p_gain_scale": {"enabled": False},
+                                                 "motor_strength": {"enabled": False},
+                                                 "control_delay_ms": {"enabled": False}}})
+    env = TrackingEnv(cfg, data, num_envs=8)
+    env.reset()
+    ids, m = np.arange(8), env.model
+    assert np.array_equal(env.backend.get_model_field("geom_friction", ids), np.repeat(m.geom_friction[None], 8, 0))
+    assert np.allclose(env.backend.get_model_field("actuator_gainprm", ids)[..., 0], m.actuator_gainprm[:, 0])
+    kd = env.backend.get_model_field("actuator_biasprm", ids)[..., 2] / m.actuator_biasprm[:, 2]
+    assert kd.std() > 0.01  # D gains still randomised
+    assert not env.randomizer.delay_enabled and (env.delay_lag == 0).all()
+
+
+def test_control_delay_feeds_old_targets(data):
+    """A 10 ms delay (2 substeps) applies the previous step's target on substeps 0-1 of each step."""
+    cfg = quiet_cfg(randomization={"enabled": True, "trunk_mass_add": {"enabled": False},
+                                   "base_com_offset": {"enabled": False}, "link_mass_scale": {"enabled": False},
+                                   "friction": {"enabled": False}, "restitution": {"enabled": False},
+                                   "p_gain_scale": {"enabled": False}, "d_gain_scale": {"enabled": False},
+                                   "motor_strength": {"enabled": False}, "push": {"enabled": False},
+                                   "control_delay_ms": {"low": 10.0, "high": 10.0}})
+    env = TrackingEnv(cfg, data, num_envs=2)
+    env.reset()
+    assert env.delay_lag.tolist() == [[1, 1, 0, 0]] * 2
+    first = env.default_joint_pos + env.action_scale * 0.2
+    ctrl = env._delayed_control(first.expand(2, -1))
+    assert torch.allclose(ctrl[:, 2:], first.expand(2, 2, -1))
+    assert torch.allclose(ctrl[:, :2], env.ref_joint_pos[0].expand(2, 2, -1))
+
+
+def test_bad_input(data, monkeypatch):
+    with pytest.raises(PipelineInputError, match="num_envs"):
+        TrackingEnv(EnvConfig(), data, num_envs=0)
+    with pytest.raises(PipelineInputError, match="num_envs"):
+        TrackingEnv(EnvConfig(), data, num_envs=-3)
+    with pytest.raises(PipelineInputError, match="backend"):
+        TrackingEnv(EnvConfig(), data, num_envs=2, backend="physx")
+    m = data.motion
+    wrong = TrackingData(**{**data.__dict__, "motion": type(m)(**{
+        **{k: getattr(m, k) for k in ("fps", "body_names", "root_pos", "root_quat", "body_pos", "body_quat")},
+        "joint_names": m.joint_names[:-1] + ("tail_joint",), "joint_pos": m.joint_pos})})
+    with pytest.raises(PipelineInputError, match="joint_names"):
+        TrackingEnv(EnvConfig(), wrong, num_envs=2)
+
+    import pipeline.keyframes as kf
+
+    def broken_builder(task):
+        raise ValueError("gap wider than the world")
+
+    monkeypatch.setattr(kf, "terrain_builder", broken_builder, raising=False)
+    monkeypatch.setattr(kf, "terrain_layout", lambda task, psi: {}, raising=False)
+    gap = TrackingData(**{**data.__dict__, "terrain": {"kind": "gap"}})
+    with pytest.raises(PipelineInputError, match="terrain"):
+        TrackingEnv(EnvConfig(), gap, num_envs=2)
