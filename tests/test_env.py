@@ -356,3 +356,40 @@ def test_bad_input(data, monkeypatch):
     gap = TrackingData(**{**data.__dict__, "terrain": {"kind": "gap"}})
     with pytest.raises(PipelineInputError, match="terrain"):
         TrackingEnv(EnvConfig(), gap, num_envs=2)
+
+
+def test_terrain_per_world_follows_psi(data):
+    """A step whose height is ψ (keyframes' terrain): each world's box top matches its ψ sample."""
+    step = TrackingData(**{**data.__dict__, "terrain": {
+        "kind": "step", "height": "psi", "anchors": {"psi_raw": 0.0, "steps": [{"edge": 0.5}]}}})
+    env = TrackingEnv(quiet_cfg(), step, num_envs=8)
+    torch.manual_seed(1)
+    env.reset()
+    box = env.model.geom("terrain_box_1").id
+    pos = env.backend.get_model_field("geom_pos", np.arange(8))[:, box]
+    psi = data.psi[env.sample.numpy()]
+    assert len(set(psi.tolist())) > 1
+    assert np.allclose(pos[:, 2] + env.model.geom_size[box, 2], psi)  # box top = ψ
+    _, _, term, _, _ = env.step(hold(env))
+    assert not term.any()
+
+
+def test_dense_tracking_variant(data):
+    env = TrackingEnv(quiet_cfg(variant={"tracking": "dense"}), data, num_envs=N)
+    env.reset()
+    for step in range(1, KEYFRAMES[0] + 1):
+        _, rew, term, _, info = env.step(hold(env))
+        assert (rew["sparse"] == 0).all() and not term.any()  # no keyframe payments in the dense variant
+        assert (rew["dense"] > sum(getattr(env.cfg.rewards.weights, k) * v for k, v in info["terms"].items()) + 5).all()
+    assert info["keyframe_crossed"].all()  # crossings still reported for evaluation
+
+
+def test_pushes_kick_the_base(data):
+    cfg = quiet_cfg(randomization={"enabled": True, "push": {"interval_s": [0.02, 0.02], "max_vel_xy": 1.0}})
+    env = TrackingEnv(cfg, data, num_envs=N)
+    torch.manual_seed(0)
+    env.reset()
+    before = env.backend.qvel[:, :2].clone()
+    env._apply_pushes()
+    kick = env.backend.qvel[:, :2] - before
+    assert (kick.abs() <= 1.0 + 1e-6).all() and kick.abs().sum() > 0.1

@@ -180,7 +180,9 @@ class TrackingEnv:
         for s, lay in enumerate(layouts):
             for gid, nm in zip(ids, names):
                 pos[s, gid], size[s, gid] = lay[nm]
-        return pos, size
+        # Sizes are constant over ψ for the paper's tasks: then only positions are written at reset
+        # (resizing also makes the backend recompute collision bounds).
+        return pos, (size if np.ptp(size, axis=0).max() > 0 else None)
 
     def _alloc_state(self) -> None:
         n, j, dev = self.num_envs, self.num_joints, self.device
@@ -445,7 +447,8 @@ class TrackingEnv:
         sample_np = sample.cpu().numpy()
         if self._terrain_fields is not None:
             self.backend.set_model_field("geom_pos", ids_np, self._terrain_fields[0][sample_np])
-            self.backend.set_model_field("geom_size", ids_np, self._terrain_fields[1][sample_np])
+            if self._terrain_fields[1] is not None:
+                self.backend.set_model_field("geom_size", ids_np, self._terrain_fields[1][sample_np])
         delay = self.randomizer.apply(ids_np)  # (n,) seconds of control delay
         d = torch.as_tensor(np.round(delay / self.sim_dt), dtype=torch.long, device=dev)
         self.delay_substeps[ids] = d
@@ -508,8 +511,8 @@ def _terrain_hooks(data: TrackingData, task, source):
     if builder_fn is None:
         raise PipelineInputError(source, "terrain",
                                  f"terrain {data.terrain.get('kind')!r} declared but pipeline.keyframes has no terrain_builder")
-    # The hooks take the task; without one, the resolved declaration TrackingData carries.
-    task = task if task is not None else data.terrain
+    # The hooks take the task (TaskConfig) or, without one, the TrackingData and its resolved terrain.
+    task = task if task is not None else data
     try:
         builder = builder_fn(task)
     except PipelineInputError:
