@@ -15,6 +15,7 @@ from typing import Any
 from pipeline.common.errors import PipelineInputError
 
 PROFILES = ("cpu", "gpu")
+PAPER_TASKS = Path(__file__).resolve().parent / "keyframes" / "paper_tasks.yaml"
 TOP_LEVEL_KEYS = ("profile", "variants", "retarget", "tasks", "env", "train", "evaluate")
 
 
@@ -40,12 +41,44 @@ def _section(raw: dict, key: str, path: Path) -> dict:
     return value
 
 
+def paper_tasks() -> dict:
+    """The seven tasks of the paper (inputs, keyframe labels, edits, psi ranges, terrain)."""
+    from pipeline.keyframes.config import load_yaml_strict
+
+    return load_yaml_strict(PAPER_TASKS)["tasks"]
+
+
+def _deep_merge(base: dict, override: dict) -> dict:
+    out = dict(base)
+    for key, value in override.items():
+        out[key] = _deep_merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def resolve_task_templates(tasks_raw: dict, path: Path) -> dict:
+    """`extends: <paper task>` starts a task from the paper's declaration; its own keys override."""
+    library = None
+    resolved = {}
+    for name, raw in tasks_raw.items():
+        if not isinstance(raw, dict):
+            raise PipelineInputError(path, f"tasks.{name}", "must be a mapping")
+        if "extends" in raw:
+            library = library if library is not None else paper_tasks()
+            parent = raw["extends"]
+            if parent not in library:
+                raise PipelineInputError(path, f"tasks.{name}.extends",
+                                         f"unknown paper task {parent!r}; known: {', '.join(library)}")
+            raw = _deep_merge(library[parent], {k: v for k, v in raw.items() if k != "extends"})
+        resolved[name] = raw
+    return resolved
+
+
 def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
     from pipeline.envs.config import EnvConfig
     from pipeline.evaluation.config import EvalConfig
     from pipeline.keyframes.config import load_tasks, load_yaml_strict
     from pipeline.retarget.config import RetargetConfig
-    from pipeline.rl.config import TrainConfig, validate_variant
+    from pipeline.rl.config import TrainConfig, get_variant
 
     path = Path(path)
     if not path.exists():
@@ -64,7 +97,7 @@ def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
     if not isinstance(variants, list) or not variants:
         raise PipelineInputError(path, "variants", "must be a non-empty list of variant names")
     for i, name in enumerate(variants):
-        validate_variant(name, where=f"{path}: variants[{i}]")
+        get_variant(name, where=f"{path}: variants[{i}]")
     if len(set(variants)) != len(variants):
         raise PipelineInputError(path, "variants", "lists a variant twice")
 
@@ -76,9 +109,9 @@ def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
         profile=profile,
         variants=tuple(variants),
         retarget=RetargetConfig.from_dict(_section(raw, "retarget", path), where="retarget"),
-        tasks=load_tasks(tasks_raw, base_dir=path.parent),
+        tasks=load_tasks(resolve_task_templates(tasks_raw, path)),
         env=EnvConfig.from_dict(_section(raw, "env", path), where="env"),
-        train=TrainConfig.from_dict(_section(raw, "train", path), where="train", profile=profile),
+        train=TrainConfig.from_dict({**_section(raw, "train", path), "profile": profile}, where="train"),
         evaluate=EvalConfig.from_dict(_section(raw, "evaluate", path), where="evaluate"),
         raw=raw,
     )

@@ -1,0 +1,30 @@
+"""Where each stage reads and writes, in one place (dvc.yaml uses the same layout)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def human_dir(task: str) -> Path:
+    return Path("data/human") / task
+
+
+def retarget_dir(task: str) -> Path:
+    return Path("data/retargeted") / task
+
+
+def keyframes_dir(task: str) -> Path:
+    return Path("data/keyframes") / task
+
+
+def model_dir(task: str, variant: str) -> Path:
+    return Path("models") / task / variant
+
+
+def results_dir(task: str, variant: str | None = None) -> Path:
+    base = Path("results") / task
+    return base / variant if variant else base
+
+
+def report_dir(task: str) -> Path:
+    return Path("reports") / task

@@ -1,0 +1,138 @@
+"""The body of each DVC stage: read the previous stage's artifact, call the concern's code, write
+this stage's artifact atomically. `stages/<name>.py` scripts only hand these to `cli.stage_main`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+from pipeline import paths
+from pipeline.common.atomic import atomic_dir, write_text_atomic
+from pipeline.config import PipelineConfig
+
+
+def run_import(params: PipelineConfig, args) -> None:
+    """Import a human clip (SMPL npz, GVHMR .pt or video) into a human-motion dataset."""
+    from pipeline.human.dataset import write_human
+    from pipeline.human.importers import load_human_motion
+
+    task = params.tasks[args.task]
+    human = load_human_motion(task.input_path(params.path.parent))
+    human.name = args.task
+    write_human(paths.human_dir(args.task), human)
+    print(f"{args.task}: {human.num_frames} frames at {human.fps:g} fps ({human.duration:.2f} s), "
+          f"subject height {human.height:.2f} m")
+
+
+def run_retarget(params: PipelineConfig, args) -> None:
+    """Retarget the human motion to the G1 with IK; write the motion, a quality report, a preview."""
+    from pipeline.human.dataset import read_human
+    from pipeline.motion.dataset import write_motions
+    from pipeline.retarget import write_preview
+    from pipeline.retarget.core import retarget
+
+    human = read_human(paths.human_dir(args.task))
+    motion, report = retarget(human, params.retarget)
+    motion.name = args.task
+    out = paths.retarget_dir(args.task)
+    write_motions(out / "motion", [motion])
+    write_text_atomic(out / "quality.json", json.dumps(report, indent=1, default=float))
+    write_preview(human, motion, out / "preview.mp4")
+    print(json.dumps(report, indent=1, default=float))
+
+
+def run_keyframes(params: PipelineConfig, args) -> None:
+    """Select keyframes and build D_edit, D_rule, the keyframe table, figure and D_rule video."""
+    from pipeline.keyframes.outputs import build_task_outputs
+    from pipeline.motion.dataset import read_motions
+
+    task = params.tasks[args.task]
+    (motion,) = read_motions(paths.retarget_dir(args.task) / "motion")
+    with atomic_dir(paths.keyframes_dir(args.task)) as staging:
+        written = build_task_outputs(motion, task, staging, seed=0)
+    print("\n".join(f"{k}: {paths.keyframes_dir(args.task) / Path(v).name}" for k, v in written.items()))
+
+
+def _train_config(params: PipelineConfig, variant: str):
+    return dataclasses.replace(params.train, variant=variant)
+
+
+def _tracking_data(params: PipelineConfig, task: str, variant: str):
+    """The reference a variant tracks: D_edit, D_rule, or the unedited motion (zero offsets)."""
+    from pipeline.keyframes.datasets import load_tracking_data
+
+    reference = _train_config(params, variant).variant_spec.reference
+    base = paths.keyframes_dir(task)
+    if reference == "rule":
+        return load_tracking_data(base / "d_rule")
+    data = load_tracking_data(base / "d_edit")
+    if reference == "original":
+        data.keyframe_offsets = data.keyframe_offsets * 0.0
+        data.dense_offsets = None
+    return data
+
+
+def run_train_stage1(params: PipelineConfig, args) -> None:
+    """Stage 1: sparse keyframe tracking (or the variant's dense baseline) with double-critic PPO."""
+    from pipeline.rl.trainer import train_stage1
+
+    data = _tracking_data(params, args.task, args.variant)
+    run_dir = paths.model_dir(args.task, args.variant) / "stage1"
+    metrics = train_stage1(data, params.env, _train_config(params, args.variant), run_dir, resume=args.resume)
+    print(json.dumps(metrics, indent=1, default=float))
+
+
+def run_train_stage2(params: PipelineConfig, args) -> None:
+    """Stage 2: phase and tracking adapters on the frozen stage-1 policy (if the variant has one)."""
+    from pipeline.rl.trainer import train_stage2
+
+    cfg = _train_config(params, args.variant)
+    model_dir = paths.model_dir(args.task, args.variant)
+    final = model_dir / "final"
+    if cfg.variant_spec.stage2:
+        data = _tracking_data(params, args.task, args.variant)
+        metrics = train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy",
+                               resume=args.resume)
+    else:
+        # One-stage variants: their final policy is the stage-1 policy, copied so later stages
+        # read every variant from the same place.
+        with atomic_dir(final) as staging:
+            shutil.copytree(model_dir / "stage1" / "policy", staging / "policy")
+            metrics = json.loads((model_dir / "stage1" / "metrics.json").read_text())
+            (staging / "metrics.json").write_text(json.dumps(metrics, indent=1))
+            (staging / "NOTE.md").write_text(f"Variant `{args.variant}` has no stage 2: this is its stage-1 policy.\n")
+    print(json.dumps(metrics, indent=1, default=float))
+
+
+def run_evaluate(params: PipelineConfig, args) -> None:
+    """Evaluate a trained variant on the easy and hard psi ranges: metrics, per-psi plots, videos."""
+    from pipeline.evaluation.run import evaluate_variant
+
+    data = _tracking_data(params, args.task, "adamimic")  # evaluation always targets D_edit keyframes
+    doc = evaluate_variant(task=args.task, variant=args.variant, data=data, env_cfg=params.env,
+                           eval_cfg=params.evaluate,
+                           policy_dir=paths.model_dir(args.task, args.variant) / "final" / "policy",
+                           out_dir=paths.results_dir(args.task, args.variant))
+    print(json.dumps(doc, indent=1, default=float)[:4000])
+
+
+def run_report(params: PipelineConfig, args) -> None:
+    """The task's results table in the paper's layout (rows: variants) and the per-psi plot."""
+    from pipeline.evaluation.report import write_report
+
+    table = write_report(args.task, list(params.variants), results_dir=paths.results_dir(args.task),
+                         out_dir=paths.report_dir(args.task))
+    print(Path(table).read_text())
+
+
+def run_export(params: PipelineConfig, args) -> None:
+    """Export the deployed policy (stage 1 + adapters) to ONNX + metadata in hub format."""
+    from pipeline.export.onnx_export import export_variant
+
+    data = _tracking_data(params, args.task, "adamimic")
+    model_dir = paths.model_dir(args.task, args.variant)
+    result = export_variant(task=args.task, variant=args.variant, data=data, policy_dir=model_dir / "final" / "policy",
+                            out_dir=model_dir / "export", env_cfg=params.env)
+    print(f"exported {result.onnx} (torch/onnxruntime max abs diff {result.parity_max_abs_diff:.2e})")
