@@ -33,7 +33,7 @@ from pipeline.envs.tracking_env import TrackingEnv  # noqa: E402
 from pipeline.keyframes.tracking_data import TrackingData  # noqa: E402
 from pipeline.motion.motion import RobotKinematics  # noqa: E402
 
-NUM_WORLDS, THREADS, BLOCK, ROUNDS, WARMUP = 256, 2, 10, 8, 5
+NUM_WORLDS, THREADS, BLOCK, ROUNDS, WARMUP = 256, 2, 10, 6, 5
 
 
 def synthetic_tracking_data(seconds: float = 4.0, num_samples: int = 16) -> TrackingData:
@@ -148,7 +148,7 @@ def main() -> None:
         standing_time += raw.standing(stand_state, stand_ctrl, BLOCK)
     steps = ROUNDS * BLOCK * NUM_WORLDS
     env_rate, raw_rate, standing_rate = steps / env_time, steps / replay_time, steps / standing_time
-    print(f"worlds={NUM_WORLDS} threads={THREADS} torch_threads={torch.get_num_threads()} "
+    print(f"worlds={NUM_WORLDS} threads={THREADS} torch_threads(env)={env.cfg.torch_threads} "
           f"control_steps={ROUNDS * BLOCK} resets={resets} (interleaved blocks of {BLOCK}; random actions, "
           f"domain randomisation on)")
     print(f"raw is the env's own physics replayed (same per-world models, states, controls); for reference, "

@@ -13,6 +13,7 @@ the last observation of the finished episode is in info["final_obs"].
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -48,10 +49,6 @@ class TrackingEnv:
             raise PipelineInputError(source, "num_envs", f"must be a positive integer, got {num_envs!r}")
         self.num_envs = n = int(num_envs)
         self._check_data(data, source)
-        if cfg.torch_threads > 0 and self.device.type == "cpu":
-            # Per-step tensors are small: one torch thread beside the physics threads avoids
-            # oversubscribing the cores (measured in benchmarks/env_throughput.py).
-            torch.set_num_threads(cfg.torch_threads)
 
         builder, self._layout = _terrain_hooks(data, task, source)
         try:
@@ -211,8 +208,28 @@ class TrackingEnv:
 
     # ------------------------------------------------------------------------------------ API
     def reset(self) -> dict[str, torch.Tensor]:
-        self._reset_worlds(self.arange)
-        return self._obs_dict()
+        with self._torch_threads():
+            self._reset_worlds(self.arange)
+            return self._obs_dict()
+
+    @contextlib.contextmanager
+    def _torch_threads(self):
+        """Runs the env's torch work on `cfg.torch_threads` threads and restores the caller's count.
+        Per-step tensors are small; torch's OpenMP workers beside the physics threads on 2 cores
+        cost ~40 % of the env's throughput (benchmarks/env_throughput.py), and a scoped switch
+        (sub-microsecond) leaves the trainer's own setting alone."""
+        wanted = self.cfg.torch_threads
+        if wanted <= 0 or self.device.type != "cpu":
+            yield
+            return
+        previous = torch.get_num_threads()
+        if previous != wanted:
+            torch.set_num_threads(wanted)
+        try:
+            yield
+        finally:
+            if previous != wanted:
+                torch.set_num_threads(previous)
 
     def obs_layout(self) -> dict:
         """Where each quantity sits in one history step of the actor observation (oldest step first,
@@ -250,6 +267,11 @@ class TrackingEnv:
         return self.set_termination_threshold(value)
 
     def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
+        """One control step of every world; see the module docstring and docs/INTERFACES.md."""
+        with self._torch_threads():
+            return self._step(action, phase_rate_offset)
+
+    def _step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None):
         cfg, w = self.cfg, self.cfg.rewards.weights
         action = action.to(self.device, torch.float32).clamp(-cfg.action_clip, cfg.action_clip)
         target = self.default_joint_pos + self.action_scale * action
@@ -382,7 +404,7 @@ class TrackingEnv:
             return
         ids = due.nonzero().squeeze(-1)
         qvel = self.backend.qvel[ids].clone()
-        kick = torch.rand(ids.numel(), 3) * 2 - 1
+        kick = torch.rand(ids.numel(), 3, device=self.device) * 2 - 1
         qvel[:, 0:2] += push.max_vel_xy * kick[:, :2]
         qvel[:, 5] += push.max_vel_yaw * kick[:, 2]
         self.backend.set_state(ids, self.backend.qpos[ids].clone(), qvel)
@@ -390,7 +412,7 @@ class TrackingEnv:
 
     def _push_interval(self, n: int) -> torch.Tensor:
         lo, hi = self.cfg.randomization.push.interval_s
-        return lo + (hi - lo) * torch.rand(n)
+        return lo + (hi - lo) * torch.rand(n, device=self.device)
 
     def _frame_features(self, ids, gravity=None):
         """The 92-d actor observation of one step for worlds `ids` (None: all)."""
@@ -403,7 +425,7 @@ class TrackingEnv:
         fresh = quat_rotate_inverse(sel(self.odom_origin_quat), qpos[:, 0:3] - sel(self.odom_origin))
         std = self.cfg.observations.odometry_noise_std
         if std > 0:
-            fresh = fresh + std * torch.randn(fresh.shape)
+            fresh = fresh + std * torch.randn(fresh.shape, device=self.device)
         odom = torch.where((step % self.odom_every == 0)[:, None], fresh, sel(self.odometry))
         if ids is None:
             self.odometry = odom
@@ -429,11 +451,11 @@ class TrackingEnv:
 
     def _reset_worlds(self, ids: torch.Tensor) -> None:
         n, dev = ids.numel(), self.device
-        sample = torch.randint(self.data.num_samples, (n,)).to(dev)
+        sample = torch.randint(self.data.num_samples, (n,), device=dev)
         frame = torch.zeros(n, dtype=torch.long, device=dev)
         if self.num_keyframes > 0 and self.cfg.rsi_prob > 0:
-            rsi = torch.rand(n).to(dev) < self.cfg.rsi_prob
-            k = torch.randint(self.num_keyframes, (n,)).to(dev)
+            rsi = torch.rand(n, device=dev) < self.cfg.rsi_prob
+            k = torch.randint(self.num_keyframes, (n,), device=dev)
             # the last frame would time out at once: RSI only from keyframes before it
             rsi &= self.kf_frames[k] < self.num_frames - 1
             frame = torch.where(rsi, self.kf_frames[k], frame)
@@ -467,7 +489,7 @@ class TrackingEnv:
         self.prev_joint_vel[ids] = qvel[:, 6:]
         self.odom_origin[ids] = self.ref_root_pos[0] + self.offset_table[sample, 0]
         self.odom_origin_quat[ids] = yaw_quat(self.ref_root_quat[0])
-        self.push_timer[ids] = self._push_interval(n).to(dev)
+        self.push_timer[ids] = self._push_interval(n)
         frame_obs, privileged = self._frame_features(ids)
         hist = self.obs_history.clone()
         hist[ids] = frame_obs[:, None].expand(-1, self.cfg.observations.history, -1)
