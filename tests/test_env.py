@@ -165,6 +165,7 @@ def test_keyframe_crossing_with_fast_phase_and_sparse_values(data):
             expected = data.sparse_scale[k] * (w.global_body_pos * r_pos + w.global_body_rot * r_rot
                                                + w.global_feet_pos * r_feet)
             assert torch.allclose(rew["sparse"], expected, rtol=1e-4)
+            assert torch.allclose(info["keyframe_body_error_w"], err2.sqrt(), atol=1e-5)
             hits[step] = k
     assert hits == {5: 0, 13: 1, 20: 2}  # frames 10, 26 (crosses 25), 40
 

@@ -323,6 +323,8 @@ class TrackingEnv:
         # ---- global errors against the (edited) reference at the current frame: info + dense variant
         ref_pos_w = self.ref_body_pos[frame] + self.offset_table[self.sample, frame][:, None]
         err2_w = ((site_pos - ref_pos_w) ** 2).sum(-1)
+        error_w = err2_w.sqrt()
+        keyframe_error_w = error_w  # replaced on crossing rows by the error against the keyframe target
         sparse = torch.zeros(self.num_envs, device=self.device)
         terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         if cfg.variant.tracking == "dense":
@@ -337,6 +339,7 @@ class TrackingEnv:
             self.next_kf[ids] = k + 1
             crossed_kf[ids] = k
             err2 = ((site_pos[ids] - self.kf_target_pos[self.sample[ids], k]) ** 2).sum(-1)
+            keyframe_error_w = error_w.index_put((ids,), err2.sqrt())
             if cfg.variant.tracking == "sparse":
                 g = self._global_terms(err2, site_quat[ids], self.kf_target_quat[k])
                 sparse[ids] = self.kf_scale[k] * (w.global_body_pos * g[0] + w.global_body_rot * g[1]
@@ -361,7 +364,8 @@ class TrackingEnv:
         info = {
             "keyframe_crossed": crossed,
             "keyframe_index": crossed_kf,
-            "body_pos_error_w": err2_w.sqrt(),
+            "body_pos_error_w": error_w,
+            "keyframe_body_error_w": keyframe_error_w,
             "body_pos_error_local": local_err2.sqrt(),
             "joint_acc": joint_acc,
             "phase": phase.to(torch.float32),
