@@ -104,9 +104,9 @@ class PPO:
     # -- acting -----------------------------------------------------------------------------
     @torch.no_grad()
     def act(self, actor_obs: torch.Tensor, critic_obs: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Samples an action; returns what the rollout stores and what the env receives."""
-        self.policy.update_normalizers(actor_obs)
-        self.critic.update_normalizers(critic_obs)
+        """Samples an action; returns what the rollout stores and what the env receives.
+        The observation normalisers stay fixed during a rollout and its update (they move after
+        the update, in `update`), so the stored means/log-probs match what the update recomputes."""
         raw, log_prob = self.policy.sample(actor_obs)
         _, _, mean, std = self.policy.log_prob_entropy(actor_obs, raw)
         action, phase_offset = self.policy.to_env(actor_obs, raw)
@@ -210,6 +210,8 @@ class PPO:
                 stats["kl"] += kl.item()
                 stats["l2c2"] += l2c2_loss.item()
                 stats["clip_frac"] += ((ratio - 1).abs() > cfg.clip).float().mean().item()
+        self.policy.update_normalizers(rollout.actor_obs)
+        self.critic.update_normalizers(rollout.critic_obs)
         out = {k: v / max(updates, 1) for k, v in stats.items()}
         out["learning_rate"] = self.learning_rate
         return out
