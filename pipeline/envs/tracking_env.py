@@ -140,6 +140,10 @@ class TrackingEnv:
     def _precompute_robot(self) -> None:
         cfg, rc = self.cfg.rewards, self.robot
         self.num_joints = rc.num_joints
+        # Steps read joints as the contiguous qpos[7:] / qvel[6:] slices (no gather): check the layout.
+        qadr = [self.model.jnt_qposadr[self.model.joint(n).id] for n in rc.joint_names]
+        if qadr != list(range(7, 7 + rc.num_joints)) or self.model.nq != 7 + rc.num_joints:
+            raise PipelineInputError("robot", "joints", "the model's qpos is not free joint + the 27 joints in action order")
         names = rc.tracked_body_names
         for key, group in (("rewards.lower_body", cfg.lower_body), ("rewards.feet", cfg.feet)):
             unknown = [b for b in group if b not in names]
