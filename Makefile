@@ -55,7 +55,7 @@ video-venv: $(VIDEO_STAMP)
 
 $(VTEST):
 	mkdir -p $(dir $(VTEST))
-	cd $(dir $(VTEST)) && { apt-get download opencv-doc >/dev/null && \
+	cd $(dir $(VTEST)) && { { apt-get download opencv-doc >/dev/null 2>&1 || { apt-get update -qq && apt-get download opencv-doc >/dev/null; }; } && \
 	  dpkg-deb --fsys-tarfile opencv-doc_*.deb | tar -xO ./usr/share/doc/opencv-doc/examples/data/vtest.avi > vtest.avi.part && \
 	  mv vtest.avi.part vtest.avi; status=$$?; rm -f opencv-doc_*.deb vtest.avi.part; exit $$status; }
 
