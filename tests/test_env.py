@@ -218,13 +218,38 @@ def test_terminations(data):
     assert rew["sparse"][0] == pytest.approx(-200.0) and (rew["sparse"][1:] == 0).all()
     assert env.phase[0] == 0  # auto-reset
 
-    # base height: the threshold above a standing robot terminates everyone, unless the task is exempt
-    env = TrackingEnv(quiet_cfg(terminations={"min_base_height": 2.0}), data, num_envs=N)
+    # base height (absolute): the threshold above a standing robot terminates everyone, unless the task is exempt
+    absolute = {"min_base_height": 2.0, "relative_to_reference": False}
+    env = TrackingEnv(quiet_cfg(terminations=absolute), data, num_envs=N)
     env.reset()
     assert env.step(hold(env))[2].all()
-    env = TrackingEnv(quiet_cfg(terminations={"min_base_height": 2.0, "base_height_exempt_tasks": ["stand"]}),
-                      data, num_envs=N)
+    env = TrackingEnv(quiet_cfg(terminations={**absolute, "base_height_exempt_tasks": ["stand"]}), data, num_envs=N)
     env.reset()
+    assert not env.step(hold(env))[2].any()
+
+
+def test_fall_terminations_follow_the_reference(data):
+    # height: z < min(min_base_height, z_ref − margin); the standing reference (0.76 m) gives 0.51 m
+    env = TrackingEnv(quiet_cfg(terminations={"min_base_height": 2.0, "base_height_margin": 0.25}), data, num_envs=N)
+    env.reset()
+    _, _, term, _, info = env.step(hold(env))
+    assert not term.any() and not info["terminated_by"]["base_height"].any()
+    env.ref_root_pos[:, 2] += 1.0  # a reference 1 m higher: 1.51 m, above the robot
+    _, rew, term, _, info = env.step(hold(env))
+    assert term.all() and info["terminated_by"]["base_height"].all() and (rew["sparse"] == -200.0).all()
+
+    # tilt: |g_xy(robot) − g_xy(reference)| > 0.8
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    env.reset()
+    env.ref_gravity_xy[:] = torch.tensor([0.75, 0.0])  # the reference leans (as the far-jump crouch does)
+    _, _, term, _, info = env.step(hold(env))
+    assert not term.any()  # an upright robot is 0.75 from it: within 0.8
+    env.ref_gravity_xy[:] = torch.tensor([0.9, 0.0])
+    _, _, term, _, info = env.step(hold(env))
+    assert term.all() and info["terminated_by"]["tilt"].all()
+    env = TrackingEnv(quiet_cfg(terminations={"relative_to_reference": False}), data, num_envs=N)
+    env.reset()
+    env.ref_gravity_xy[:] = torch.tensor([0.9, 0.0])  # ignored by the absolute check
     assert not env.step(hold(env))[2].any()
 
 
@@ -266,6 +291,9 @@ def test_reset_state_init_from_keyframes(data):
     assert np.allclose(env.backend.qpos[:, :3].numpy(), root, atol=1e-5)
     assert np.allclose(env.backend.qpos[:, 7:].numpy(), data.motion.joint_pos[frames], atol=1e-5)
     assert np.allclose(env.backend.qvel[:, 6:].numpy(), data.motion.joint_vel[frames], atol=1e-4)
+    # D_edit's offsets jump at the keyframes RSI starts from: the base keeps the reference's velocity
+    # (a finite difference across the jump once added ψ/(2 dt), up to 2.5 m/s here)
+    assert np.allclose(env.backend.qvel[:, :3].numpy(), data.motion.root_lin_vel[frames], atol=1e-4)
 
 
 def test_domain_randomisation_ranges_applied(data):

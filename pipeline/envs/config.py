@@ -84,9 +84,19 @@ class CurriculumConfig:
 
 @dataclass
 class TerminationConfig:
+    """Falls end an episode. With `relative_to_reference` (default) both fall checks are measured
+    against the reference at the current frame, because dynamic clips themselves cross the absolute
+    thresholds: the far-jump crouch has the pelvis at |g_xy| = 0.75 (0.8 would end an episode that
+    follows the reference closely within 4 steps) and its landing puts the pelvis at 0.43 m.
+      tilt:   |g_xy(robot) − g_xy(reference)| > max_tilt   (absolute: |g_xy(robot)| > max_tilt)
+      height: z < min(min_base_height, z_reference − base_height_margin)   (absolute: z < min_base_height)
+    For a reference that stands upright above min_base_height + margin both equal the absolute checks."""
+
     keyframe_error: CurriculumConfig = field(default_factory=CurriculumConfig)
-    max_tilt: float = 0.8  # |projected gravity xy|
+    max_tilt: float = 0.8  # |projected gravity xy| (of the error against the reference by default)
     min_base_height: float = 0.4  # m, world z of the pelvis
+    base_height_margin: float = 0.25  # m the pelvis may sink below the reference's before it counts as a fall
+    relative_to_reference: bool = True
     base_height_enabled: bool = True
     base_height_exempt_tasks: list[str] = field(default_factory=list)  # tasks that go low on purpose
 
@@ -187,6 +197,10 @@ class EnvConfig:
         iv = self.randomization.push.interval_s
         if len(iv) != 2 or not 0 < iv[0] <= iv[1]:
             bad("randomization.push.interval_s", "must be [min, max] seconds with 0 < min <= max")
+        if self.terminations.max_tilt <= 0:
+            bad("terminations.max_tilt", "must be > 0")
+        if self.terminations.base_height_margin < 0:
+            bad("terminations.base_height_margin", "must be >= 0")
         if self.physics_threads < 1:
             bad("physics_threads", "must be >= 1")
         if self.torch_threads < 0:

@@ -117,6 +117,7 @@ class TrackingEnv:
         self.ref_body_pos = self._tensor(m.body_pos)
         self.ref_body_quat = self._tensor(m.body_quat)
         self.ref_qvel = self._tensor(m.qvel())
+        self.ref_gravity_xy = projected_gravity(self.ref_root_quat)[:, :2].contiguous()  # for the tilt check
         root_q = self.ref_root_quat[:, None].expand(-1, m.body_pos.shape[1], -1)
         self.ref_local_pos = quat_rotate_inverse(root_q, self.ref_body_pos - self.ref_root_pos[:, None])
         self.ref_local_quat = quat_mul(quat_conjugate(root_q), self.ref_body_quat)
@@ -124,7 +125,14 @@ class TrackingEnv:
         frames = np.tile(np.arange(t), d.num_samples)
         offsets = d.offsets_at_frames(samples, frames).reshape(d.num_samples, t, 3)
         self.offset_table = self._tensor(offsets)  # (S, T, 3): the ψ edit at every frame
-        self.offset_vel_table = self._tensor(np.gradient(offsets, m.dt, axis=1) if t > 1 else 0 * offsets)
+        # Velocity of the edit, added to the reference's at reset. D_edit's offsets are piecewise
+        # constant (they jump at the keyframes where RSI starts): a finite difference there would be
+        # a teleport read as a velocity (−22 m/s at the far-jump landing), so only smooth per-frame
+        # offsets (D_rule) have one.
+        if d.dense_offsets is not None and t > 1:
+            self.offset_vel_table = self._tensor(np.gradient(offsets, m.dt, axis=1))
+        else:
+            self.offset_vel_table = torch.zeros_like(self.offset_table)
         self.psi = self._tensor(d.psi)
         kf = np.asarray(d.keyframe_frames, dtype=np.int64)
         self.num_keyframes = kf.size
@@ -335,6 +343,7 @@ class TrackingEnv:
             g = self._global_terms(err2_w, site_quat, self.ref_body_quat[frame])
             dense = dense + w.global_body_pos * g[0] + w.global_body_rot * g[1] + w.global_feet_pos * g[2]
             terminated |= err2_w.max(-1).values > self.termination_threshold**2
+        by_keyframe = terminated.clone()
 
         # ---- sparse group: only worlds crossing a keyframe this step
         if bool(crossed.any()):
@@ -348,13 +357,22 @@ class TrackingEnv:
                 g = self._global_terms(err2, site_quat[ids], self.kf_target_quat[k])
                 sparse[ids] = self.kf_scale[k] * (w.global_body_pos * g[0] + w.global_body_rot * g[1]
                                                   + w.global_feet_pos * g[2])
-                terminated[ids] |= err2.max(-1).values > self.termination_threshold**2
+                by_keyframe[ids] |= err2.max(-1).values > self.termination_threshold**2
+                terminated |= by_keyframe
 
         # ---- terminations
         gravity = projected_gravity(root_quat)
-        terminated |= gravity[:, 0] ** 2 + gravity[:, 1] ** 2 > cfg.terminations.max_tilt**2
+        tc = cfg.terminations
+        tilt_xy = gravity[:, :2] - self.ref_gravity_xy[frame] if tc.relative_to_reference else gravity[:, :2]
+        by_tilt = (tilt_xy**2).sum(-1) > tc.max_tilt**2
+        by_height = torch.zeros_like(by_tilt)
         if self.height_termination:
-            terminated |= root_pos[:, 2] < cfg.terminations.min_base_height
+            min_height = torch.full_like(root_pos[:, 2], tc.min_base_height)
+            if tc.relative_to_reference:
+                ref_z = self.ref_root_pos[frame, 2] + self.offset_table[self.sample, frame, 2]
+                min_height = torch.minimum(min_height, ref_z - tc.base_height_margin)
+            by_height = root_pos[:, 2] < min_height
+        terminated |= by_tilt | by_height
         truncated = (phase >= 1.0 - _EPS) & ~terminated
         sparse = sparse + w.termination * terminated.to(torch.float32)
         if cfg.rewards.scale_by_dt:
@@ -380,6 +398,8 @@ class TrackingEnv:
             "terms": terms,
             "final_obs": final_obs,
             "termination_threshold": self.termination_threshold,
+            # which checks fired (several may on one step): diagnostics for the trainer's log
+            "terminated_by": {"keyframe_error": by_keyframe, "tilt": by_tilt, "base_height": by_height},
         }
         done = terminated | truncated
         if bool(done.any()):
