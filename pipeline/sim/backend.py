@@ -137,6 +137,16 @@ class PhysicsBackend(ABC):
             raise PipelineInputError(_SOURCE, "set_model_field", f"{name!r} is not a numeric MjModel array field")
         return template
 
+    def _field_update(self, name: str, world_ids, values) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Checked (ids, values (n, *field.shape), template) for set_model_field."""
+        template = self._check_field(name)
+        ids = self._world_ids(world_ids)
+        try:
+            values = np.broadcast_to(_as_numpy64(values), (len(ids), *template.shape))
+        except ValueError as err:
+            raise PipelineInputError(_SOURCE, name, f"values must broadcast to ({len(ids)}, {template.shape}): {err}")
+        return ids, values, template
+
 
 def _as_numpy64(x) -> np.ndarray:
     if isinstance(x, torch.Tensor):

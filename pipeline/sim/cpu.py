@@ -25,7 +25,7 @@ import torch
 from mujoco import rollout as mj_rollout
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.sim.backend import PhysicsBackend, _as_numpy64
+from pipeline.sim.backend import PhysicsBackend
 from pipeline.sim.model import default_state_qpos, geom_bounds, refresh_body_bvh
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
@@ -160,12 +160,7 @@ class CpuBackend(PhysicsBackend):
     # ---- per-world model parameters ----
 
     def set_model_field(self, name: str, world_ids, values) -> None:
-        template = self._check_field(name)
-        ids = self._world_ids(world_ids)
-        try:
-            values = np.broadcast_to(_as_numpy64(values), (len(ids), *template.shape))
-        except ValueError as err:
-            raise PipelineInputError("backend", name, f"values must broadcast to ({len(ids)}, {template.shape}): {err}")
+        ids, values, _ = self._field_update(name, world_ids, values)
         for row, world in enumerate(ids.tolist()):
             model = self._own(world)
             getattr(model, name)[...] = values[row]

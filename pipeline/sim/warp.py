@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.sim.backend import PhysicsBackend, _as_numpy64
+from pipeline.sim.backend import PhysicsBackend
 from pipeline.sim.model import default_state_qpos, geom_bounds
 
 # Fields domain randomisation and terrain layouts write (issue 5's table + terrain per ψ).
@@ -164,12 +164,7 @@ class WarpBackend(PhysicsBackend):
         return view
 
     def set_model_field(self, name: str, world_ids, values) -> None:
-        template = self._check_field(name)
-        ids = self._world_ids(world_ids)
-        try:
-            values = np.broadcast_to(_as_numpy64(values), (len(ids), *template.shape))
-        except ValueError as err:
-            raise PipelineInputError("backend", name, f"values must broadcast to ({len(ids)}, {template.shape}): {err}")
+        ids, values, _ = self._field_update(name, world_ids, values)
         view = self._field(name)
         index = torch.as_tensor(ids, device=self.device)
         view[index] = torch.as_tensor(np.array(values), dtype=view.dtype, device=self.device).reshape(len(ids), *view.shape[1:])
