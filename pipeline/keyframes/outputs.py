@@ -33,3 +33,35 @@ def build_task_outputs(motion: Motion, task: TaskConfig, out_dir: str | Path, nu
         paths["video"] = out_dir / "d_rule.mp4"
         rule_video(rule, paths["video"])
     return paths
+
+
+def paper_task_figures(out_dir: str | Path, shared_dir: str | Path) -> list[Path]:
+    """The keyframing figure of every paper task whose input is present: import, retarget, select,
+    edit, draw. `python -m pipeline.keyframes.outputs OUT_DIR [SHARED_DIR]`."""
+    from pipeline.config import paper_tasks
+    from pipeline.human.importers import load_human_motion
+    from pipeline.keyframes.config import TaskConfig
+    from pipeline.retarget import RetargetConfig, retarget
+
+    written = []
+    for name, raw in paper_tasks().items():
+        clip = Path(shared_dir) / f"{name}.npz"
+        if not clip.is_file():
+            continue
+        task = TaskConfig.from_dict(name, {**raw, "input": str(clip)})
+        motion, _ = retarget(load_human_motion(clip), RetargetConfig(), progress=False)
+        table = select_keyframes(motion, task)
+        path = Path(out_dir) / f"keyframes_{name}.png"
+        keyframe_figure(build_tracking_data(motion, task, table, "edit", None, 0), path)
+        written.append(path)
+    return written
+
+
+if __name__ == "__main__":
+    import sys
+
+    from pipeline import REPO_ROOT
+
+    shared = sys.argv[2] if len(sys.argv) > 2 else REPO_ROOT.parent / "shared" / "data" / "adamimic_smpl"
+    for figure in paper_task_figures(sys.argv[1], shared):
+        print(figure)
