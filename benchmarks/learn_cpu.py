@@ -81,14 +81,23 @@ def main() -> None:
     import json
 
     history = json.loads((out / "history.json").read_text())
-    print("iteration  minutes  env_steps  success  return_sparse  return_dense")
+    cols = [("iteration", "{:9d}", "iteration"), ("minutes", "{:7.2f}", None), ("env_steps", "{:9d}", "env_steps"),
+            ("success", "{:7.3f}", "success_rate"), ("ep_len", "{:6.1f}", "episode_length"),
+            ("fall_h", "{:6.2f}", "ended_by_base_height"), ("fall_t", "{:6.2f}", "ended_by_tilt"),
+            ("kf_err", "{:6.2f}", "ended_by_keyframe_error"), ("ret_sparse", "{:10.1f}", "return_sparse"),
+            ("ret_dense", "{:9.1f}", "return_dense"), ("std", "{:5.2f}", "action_std"),
+            ("kf_thr", "{:6.2f}", "termination_threshold"), ("pen", "{:4.2f}", "penalty_scale")]
+    print("  ".join(name for name, _, _ in cols))
     stride = max(1, len(history) // 30)
     rows = history[::stride]
     if rows[-1] is not history[-1]:
         rows.append(history[-1])
     for h in rows:
-        print(f"{h['iteration']:9d}  {h['seconds'] / 60:7.2f}  {h['env_steps']:9d}  {h.get('success_rate', float('nan')):7.3f}"
-              f"  {h.get('return_sparse', float('nan')):13.1f}  {h.get('return_dense', float('nan')):12.1f}")
+        cells = []
+        for name, fmt, key in cols:
+            value = h["seconds"] / 60 if key is None else h.get(key, float("nan"))
+            cells.append(fmt.format(value) if not (isinstance(value, float) and value != value) else "nan".rjust(len(name)))
+        print("  ".join(c.rjust(len(n)) for c, (n, _, _) in zip(cells, cols)))
     print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
     success = metrics.get("success_rate") or 0.0
     print(f"success={success:.3f} minutes={minutes:.1f}")

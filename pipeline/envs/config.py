@@ -51,6 +51,21 @@ class KernelSigmas:
 
 
 @dataclass
+class PenaltyCurriculum:
+    """Scale on the dense group's penalty terms (every negative weight) against training progress
+    p ∈ [0, 1]: linear from `initial` at p = 0 to 1 at p = `full_at`, as HumanoidVerse/ASAP's penalty
+    curriculum (the code base AdaMimic's reward table comes from) starts at 0.1. Why: at the start
+    the exploration noise alone costs ~27/step in action rate (std 1, 27 joints, weight 0.5) against
+    at most 2 of local tracking, so every step alive lowers the dense return and the dense critic
+    teaches the policy to fall early. Outside training (no curriculum call) the scale is 1: the
+    paper's weights."""
+
+    enabled: bool = True
+    initial: float = 0.1
+    full_at: float = 0.8
+
+
+@dataclass
 class RewardConfig:
     weights: RewardWeights = field(default_factory=RewardWeights)
     sigma2: KernelSigmas = field(default_factory=KernelSigmas)
@@ -59,7 +74,10 @@ class RewardConfig:
     soft_torque_limit: float = 0.95  # fraction of the effort limit where the torque penalty starts
     soft_joint_pos_limit: float = 0.95  # fraction of the joint range (about its centre)
     soft_joint_vel_limit: float = 0.95
-    scale_by_dt: bool = False  # multiply the dense group by the control dt (legged_gym habit)
+    # Multiply the dense group by the control dt (legged_gym / IsaacLab / HumanoidVerse habit). It does
+    # not change learning here: PPO normalises each group's advantages and the critics their returns.
+    scale_by_dt: bool = False
+    penalty_curriculum: PenaltyCurriculum = field(default_factory=PenaltyCurriculum)
 
 
 @dataclass
@@ -197,6 +215,11 @@ class EnvConfig:
         iv = self.randomization.push.interval_s
         if len(iv) != 2 or not 0 < iv[0] <= iv[1]:
             bad("randomization.push.interval_s", "must be [min, max] seconds with 0 < min <= max")
+        pc = self.rewards.penalty_curriculum
+        if not 0.0 <= pc.initial <= 1.0:
+            bad("rewards.penalty_curriculum.initial", "must be in [0, 1]")
+        if not 0.0 <= pc.full_at <= 1.0:
+            bad("rewards.penalty_curriculum.full_at", "must be in [0, 1]")
         if self.terminations.max_tilt <= 0:
             bad("terminations.max_tilt", "must be > 0")
         if self.terminations.base_height_margin < 0:

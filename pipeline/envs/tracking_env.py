@@ -76,6 +76,7 @@ class TrackingEnv:
         self.action_dim = self.num_joints
 
         self.termination_threshold = float(cfg.terminations.keyframe_error.start)
+        self.penalty_scale = 1.0  # the paper's weights until a trainer's curriculum says otherwise
         self._alloc_state()
 
     # ------------------------------------------------------------------------------------ set-up
@@ -267,7 +268,8 @@ class TrackingEnv:
         return self.termination_threshold
 
     def update_curriculum(self, progress: float) -> float:
-        """Sets the keyframe-error termination threshold from training progress p ∈ [0, 1]."""
+        """Sets the keyframe-error termination threshold (returned) and the dense penalty scale
+        (`penalty_scale`, see `PenaltyCurriculum`) from training progress p ∈ [0, 1]."""
         c = self.cfg.terminations.keyframe_error
         p = min(max(float(progress), 0.0), 1.0)
         if p <= c.tighten_until:
@@ -276,6 +278,10 @@ class TrackingEnv:
             value = c.min
         else:
             value = c.min + (c.max - c.min) * ((p - c.relax_from) / max(1.0 - c.relax_from, _EPS))
+        pc = self.cfg.rewards.penalty_curriculum
+        if pc.enabled:
+            ramp = min(p / pc.full_at, 1.0) if pc.full_at > 0 else 1.0
+            self.penalty_scale = pc.initial + (1.0 - pc.initial) * ramp
         return self.set_termination_threshold(value)
 
     def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
@@ -330,7 +336,10 @@ class TrackingEnv:
             "joint_pos_limits": R.outside_range(joint_pos, self.soft_pos_low, self.soft_pos_high),
             "joint_vel_limits": R.over_limit(joint_vel, self.soft_vel_limit),
         }
-        dense = sum(getattr(w, k) * v for k, v in terms.items())
+        dense = 0.0
+        for k, v in terms.items():
+            weight = getattr(w, k)
+            dense = dense + (weight * self.penalty_scale if weight < 0 else weight) * v
 
         # ---- global errors against the (edited) reference at the current frame: info + dense variant
         ref_pos_w = self.ref_body_pos[frame] + self.offset_table[self.sample, frame][:, None]

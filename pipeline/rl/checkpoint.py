@@ -139,7 +139,11 @@ def load_policy(path: str | Path, expect: dict | None = None, *, with_critic: bo
     critic = build_critic_from_meta(meta)
     critic_state = {k[7:]: v for k, v in tensors.items() if k.startswith("critic.")}
     if critic_state:
-        critic.load_state_dict(critic_state)
+        # Critics saved before value normalisation lack its statistics: they start fresh (identity).
+        missing, unexpected = critic.load_state_dict(critic_state, strict=False)
+        missing = [k for k in missing if not k.split(".")[0].endswith("_returns")]
+        if missing or unexpected:
+            raise PipelineInputError(path, "critic", f"weights do not match the critic (missing {missing[:3]}, unexpected {unexpected[:3]})")
     return policy, critic, meta
 
 

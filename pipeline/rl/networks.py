@@ -120,19 +120,81 @@ class Stage1Policy(nn.Module):
         return self.to_env(obs, self.raw_mean(obs))
 
 
+class ReturnNormalizer(nn.Module):
+    """Running mean/std of one reward group's returns (exponential, bias-corrected), so a critic
+    head regresses returns of unit scale whatever the group's magnitude (value normalisation as in
+    rl_games' `normalize_value` / MAPPO's ValueNorm). Sparse returns here are O(100–1000): a head
+    regressing them directly needs thousands of Adam steps just to grow its output layer."""
+
+    def __init__(self, decay: float = 0.99, eps: float = 1e-4, enabled: bool = True):
+        super().__init__()
+        self.decay, self.eps, self.enabled = decay, eps, enabled
+        self.register_buffer("mean", torch.zeros(()))
+        self.register_buffer("mean_sq", torch.ones(()))
+        self.register_buffer("weight", torch.zeros((), dtype=torch.float64))  # bias correction
+
+    @property
+    def std(self) -> torch.Tensor:
+        mean, mean_sq = self._debiased()
+        return torch.sqrt((mean_sq - mean**2).clamp(min=self.eps))
+
+    def _debiased(self) -> tuple[torch.Tensor, torch.Tensor]:
+        if float(self.weight) <= 0.0:
+            return self.mean, self.mean_sq  # untouched: identity (mean 0, std 1)
+        w = float(self.weight)
+        return self.mean / w, self.mean_sq / w
+
+    @torch.no_grad()
+    def update(self, returns: torch.Tensor) -> None:
+        if not self.enabled:
+            return
+        x = returns.reshape(-1).to(self.mean.dtype)
+        if float(self.weight) <= 0.0:
+            self.mean.zero_()
+            self.mean_sq.zero_()
+        d = self.decay
+        self.mean.mul_(d).add_((1 - d) * x.mean())
+        self.mean_sq.mul_(d).add_((1 - d) * (x * x).mean())
+        self.weight.mul_(d).add_(1 - d)
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.enabled:
+            return x
+        return (x - self._debiased()[0]) / self.std
+
+    def denormalize(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.enabled:
+            return x
+        return x * self.std + self._debiased()[0]
+
+
 class DoubleCritic(nn.Module):
     """Two value networks, one per reward group: sparse keyframe rewards and dense tracking rewards
-    live on very different scales and horizons, so one network for both would blur them."""
+    live on very different scales and horizons, so one network for both would blur them.
 
-    def __init__(self, obs_dim: int, hidden: list[int], activation: str = "elu", normalize_obs: bool = True):
+    Each head predicts its group's return normalised by that group's running return statistics;
+    `forward` gives values in reward units (for GAE), `normalized` the heads' raw outputs (for the
+    regression, which then has unit scale in both groups)."""
+
+    def __init__(self, obs_dim: int, hidden: list[int], activation: str = "elu", normalize_obs: bool = True,
+                 normalize_values: bool = True):
         super().__init__()
         self.normalizer = EmpiricalNormalizer(obs_dim, enabled=normalize_obs)
         self.sparse = mlp(obs_dim, hidden, 1, activation)
         self.dense = mlp(obs_dim, hidden, 1, activation)
+        self.sparse_returns = ReturnNormalizer(enabled=normalize_values)
+        self.dense_returns = ReturnNormalizer(enabled=normalize_values)
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def return_normalizer(self, group: str) -> ReturnNormalizer:
+        return self.sparse_returns if group == "sparse" else self.dense_returns
+
+    def normalized(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = self.normalizer(obs)
         return self.sparse(x).squeeze(-1), self.dense(x).squeeze(-1)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        v_sparse, v_dense = self.normalized(obs)
+        return self.sparse_returns.denormalize(v_sparse), self.dense_returns.denormalize(v_dense)
 
     def update_normalizers(self, obs: torch.Tensor) -> None:
         self.normalizer.update(obs)

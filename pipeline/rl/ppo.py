@@ -94,8 +94,9 @@ class PPO:
     def __init__(self, policy: nn.Module, critic: nn.Module, cfg: PPOConfig, *, l2c2: bool = False):
         self.policy, self.critic, self.cfg, self.l2c2 = policy, critic, cfg, l2c2
         self.learning_rate = cfg.learning_rate
-        params = [p for p in list(policy.parameters()) + list(critic.parameters()) if p.requires_grad]
-        self.optimizer = torch.optim.Adam(params, lr=self.learning_rate)
+        self.actor_params = [p for p in policy.parameters() if p.requires_grad]
+        self.critic_params = [p for p in critic.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.Adam(self.actor_params + self.critic_params, lr=self.learning_rate)
         self.gammas = {"sparse": cfg.gamma_sparse, "dense": cfg.gamma_dense}
         self.weights = {"sparse": cfg.adv_weight_sparse, "dense": cfg.adv_weight_dense}
         # Only the dense group bootstraps at timeouts (see the module docstring).
@@ -147,13 +148,19 @@ class PPO:
         obs_a, obs_c, raw = flat(rollout.actor_obs), flat(rollout.critic_obs), flat(rollout.raw_actions)
         old_log_prob, old_mean, old_std = flat(rollout.log_probs), flat(rollout.means), flat(rollout.stds)
         adv = flat(advantages)
-        ret = {g: flat(returns[g]) for g in GROUPS}
-        old_v = {g: flat(rollout.values[g]) for g in GROUPS}
+        # Each critic head regresses its group's returns in units of that group's running return
+        # statistics (DoubleCritic), refreshed with this rollout's returns first.
+        norms = {g: self.critic.return_normalizer(g) for g in GROUPS}
+        for g in GROUPS:
+            norms[g].update(returns[g])
+        ret = {g: norms[g].normalize(flat(returns[g])) for g in GROUPS}
+        old_v = {g: norms[g].normalize(flat(rollout.values[g])) for g in GROUPS}
         # L2C2 pairs an observation with the next one of the same episode (flat index + num_envs).
         ended = flat(rollout.terminated | rollout.truncated)
         has_next = ~ended & (torch.arange(total, device=ended.device) < total - num_envs)
 
-        stats = {k: 0.0 for k in ("policy_loss", "value_loss_sparse", "value_loss_dense", "entropy", "kl", "l2c2", "clip_frac")}
+        stats = {k: 0.0 for k in ("policy_loss", "value_loss_sparse", "value_loss_dense", "entropy", "kl", "l2c2", "clip_frac",
+                                  "grad_norm_actor", "grad_norm_critic")}
         updates = 0
         batch = total // cfg.minibatches
         for _ in range(cfg.epochs):
@@ -180,7 +187,7 @@ class PPO:
                 policy_loss = -surrogate.mean()
 
                 # One regression per critic on its own group's returns.
-                values = dict(zip(GROUPS, self.critic(obs_c[idx])))
+                values = dict(zip(GROUPS, self.critic.normalized(obs_c[idx])))
                 value_losses = {}
                 for g in GROUPS:
                     err = (values[g] - ret[g][idx]) ** 2
@@ -199,7 +206,10 @@ class PPO:
 
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
-                nn.utils.clip_grad_norm_([p for g in self.optimizer.param_groups for p in g["params"]], cfg.max_grad_norm)
+                # Actor and critics clipped apart: one joint norm would let the critics' gradients
+                # (value losses of O(1e4) before value normalisation) scale the actor's by ~1e-4.
+                grad_actor = nn.utils.clip_grad_norm_(self.actor_params, cfg.max_grad_norm)
+                grad_critic = nn.utils.clip_grad_norm_(self.critic_params, cfg.max_grad_norm)
                 self.optimizer.step()
 
                 updates += 1
@@ -210,10 +220,15 @@ class PPO:
                 stats["kl"] += kl.item()
                 stats["l2c2"] += l2c2_loss.item()
                 stats["clip_frac"] += ((ratio - 1).abs() > cfg.clip).float().mean().item()
+                stats["grad_norm_actor"] += float(grad_actor)
+                stats["grad_norm_critic"] += float(grad_critic)
         self.policy.update_normalizers(rollout.actor_obs)
         self.critic.update_normalizers(rollout.critic_obs)
         out = {k: v / max(updates, 1) for k, v in stats.items()}
         out["learning_rate"] = self.learning_rate
+        out["action_std"] = float(old_std.mean())
+        for g in GROUPS:
+            out[f"return_std_{g}"] = float(norms[g].std)
         return out
 
     def _l2c2(self, idx, obs_a, obs_c, has_next, num_envs, mean, values) -> torch.Tensor:
@@ -227,7 +242,7 @@ class PPO:
         mid_a = obs_a[keep] + u * (obs_a[keep + num_envs] - obs_a[keep])
         mid_c = obs_c[keep] + u * (obs_c[keep + num_envs] - obs_c[keep])
         actor_term = ((self.policy.raw_mean(mid_a) - mean[sel]) ** 2).sum(-1).mean()
-        v_mid = self.critic(mid_c)
+        v_mid = self.critic.normalized(mid_c)  # unit-scale outputs, as in the value loss
         critic_term = sum(((v_mid[i] - values[g][sel]) ** 2).mean() for i, g in enumerate(GROUPS))
         return self.cfg.l2c2_actor * actor_term + self.cfg.l2c2_critic * critic_term
 

@@ -47,6 +47,7 @@ class EpisodeStats:
     def __init__(self, num_envs: int, device, window: int = 200):
         self.returns = {g: torch.zeros(num_envs, device=device) for g in GROUPS}
         self.failed = torch.zeros(num_envs, dtype=torch.bool, device=device)
+        self.steps = torch.zeros(num_envs, dtype=torch.long, device=device)
         self.window = window
         self.finished: list[dict] = []
 
@@ -57,34 +58,50 @@ class EpisodeStats:
         if crossed is not None and err is not None:
             self.failed |= crossed.bool() & (err.mean(-1) > SUCCESS_ERROR_M)
         self.failed |= terminated.bool()
+        self.steps += 1
         done = (terminated | truncated).nonzero().flatten()
+        causes = info.get("terminated_by") or {}
         for i in done.tolist():
-            self.finished.append({"success": float(not self.failed[i]), **{g: float(self.returns[g][i]) for g in GROUPS}})
+            episode = {"success": float(not self.failed[i]), "length": float(self.steps[i]),
+                       **{g: float(self.returns[g][i]) for g in GROUPS}}
+            for name, flags in causes.items():
+                episode[f"ended_by_{name}"] = float(bool(terminated[i]) and bool(flags[i]))
+            self.finished.append(episode)
         self.finished = self.finished[-self.window :]
         for g in GROUPS:
             self.returns[g][done] = 0.0
         self.failed[done] = False
+        self.steps[done] = 0
 
     def reset(self) -> None:
         for g in GROUPS:
             self.returns[g].zero_()
         self.failed.zero_()
+        self.steps.zero_()
 
     def summary(self) -> dict[str, float]:
         if not self.finished:
             return {}
-        return {"success_rate": float(np.mean([e["success"] for e in self.finished])),
-                "return_sparse": float(np.mean([e["sparse"] for e in self.finished])),
-                "return_dense": float(np.mean([e["dense"] for e in self.finished])),
-                "episodes": len(self.finished)}
+        out = {"success_rate": float(np.mean([e["success"] for e in self.finished])),
+               "return_sparse": float(np.mean([e["sparse"] for e in self.finished])),
+               "return_dense": float(np.mean([e["dense"] for e in self.finished])),
+               "episode_length": float(np.mean([e.get("length", np.nan) for e in self.finished])),
+               "episodes": len(self.finished)}
+        # share of finished episodes each termination check ended (diagnostics)
+        for key in sorted({k for e in self.finished for k in e if k.startswith("ended_by_")}):
+            out[key] = float(np.mean([e.get(key, 0.0) for e in self.finished]))
+        return out
 
     def state_dict(self) -> dict:
-        return {"returns": {g: v.clone() for g, v in self.returns.items()}, "failed": self.failed.clone(), "finished": list(self.finished)}
+        return {"returns": {g: v.clone() for g, v in self.returns.items()}, "failed": self.failed.clone(),
+                "steps": self.steps.clone(), "finished": list(self.finished)}
 
     def load_state_dict(self, s: dict) -> None:
         for g in GROUPS:
             self.returns[g].copy_(s["returns"][g])
         self.failed.copy_(s["failed"])
+        if "steps" in s:
+            self.steps.copy_(s["steps"])
         self.finished = list(s["finished"])
 
 
@@ -177,13 +194,20 @@ class Trainer:
         start, obs = 0, None
         if resume:
             start, obs = self._restore()
+        if start == 0:
+            self._warm_up_normalizers()
         writer = self._writer()
         t0 = time.time()
         bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=f"stage {self.stage}",
                    disable=not self.progress, mininterval=2.0, file=sys.stderr)
         for it in bar:
             obs = self._boundary(it, obs)
-            self._curriculum(it / max(iterations, 1))
+            # Training progress for the curriculum: by iterations, or by wall time when a time limit
+            # ends the run first (else a run sized by time would never leave the curriculum's start).
+            progress = it / max(iterations, 1)
+            if time_limit_s is not None and time_limit_s > 0:
+                progress = max(progress, (time.time() - t0) / time_limit_s)
+            self._curriculum(progress)
             self.policy.train()
             rollout, obs, extra = self.collect(obs)
             stats = self.ppo.update(rollout)
@@ -194,6 +218,10 @@ class Trainer:
                           "reward_sparse": rollout.rewards["sparse"].mean().item(),
                           "reward_dense": rollout.rewards["dense"].mean().item(),
                           "seconds": time.time() - t0})
+            for name in ("termination_threshold", "penalty_scale"):  # the env's curricula, when it has them
+                value = getattr(self.env, name, None)
+                if isinstance(value, (int, float)):
+                    stats[name] = float(value)
             self.history.append(stats)
             if writer is not None:
                 for k, v in stats.items():
@@ -210,6 +238,26 @@ class Trainer:
         if writer is not None:
             writer.close()
         return self._finish(iterations)
+
+    @torch.no_grad()
+    def _warm_up_normalizers(self) -> None:
+        """Fits the observation normalisers on one rollout of the initial policy before the first
+        update. Without it the first rollout and update see raw observations (joint velocities of
+        ~10 rad/s): the first Adam steps then move the policy so far (KL ≈ 2× target on average)
+        that the adaptive rule cuts the learning rate to its floor. The statistics are then frozen
+        for that rollout and its update like every later one (see PPO.act)."""
+        if not self.cfg.ppo.normalize_obs:
+            return
+        obs = self.env.reset()
+        actor, critic = [], []
+        for _ in range(self.cfg.ppo.steps_per_iteration):
+            actor.append(obs["actor"])
+            critic.append(obs["critic"])
+            raw, _ = self.policy.sample(obs["actor"])
+            action, phase_offset = self.policy.to_env(obs["actor"], raw)
+            obs = self.env.step(action, phase_offset if self.use_phase_offset else None)[0]
+        self.policy.update_normalizers(torch.stack(actor))
+        self.critic.update_normalizers(torch.stack(critic))
 
     # -- saving / resuming ------------------------------------------------------------------
     def _training_state(self, obs: dict) -> dict:
