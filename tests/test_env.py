@@ -277,6 +277,27 @@ def test_keyframe_error_termination_and_curriculum(data):
     assert not term.any()
 
 
+def test_penalty_curriculum_scales_only_the_penalties(data):
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    assert env.penalty_scale == 1.0  # outside training: the paper's weights
+    env.update_curriculum(0.0)
+    assert env.penalty_scale == pytest.approx(0.1)
+    env.update_curriculum(0.4)
+    assert env.penalty_scale == pytest.approx(0.55)  # linear to 1 at p = full_at = 0.8
+    env.update_curriculum(0.9)
+    assert env.penalty_scale == pytest.approx(1.0)
+    w = env.cfg.rewards.weights
+    for scale_at in (0.0, 1.0):
+        env.update_curriculum(scale_at)
+        env.reset()
+        _, rew, _, _, info = env.step(torch.full((N, 27), 0.3))
+        t = info["terms"]
+        positive = sum(getattr(w, k) * t[k] for k in t if getattr(w, k) > 0)
+        negative = sum(getattr(w, k) * t[k] for k in t if getattr(w, k) < 0)
+        assert torch.allclose(rew["dense"], positive + env.penalty_scale * negative, rtol=1e-5, atol=1e-5)
+        assert (negative < -0.5).all()  # the action-rate jump from rest is a real penalty
+
+
 def test_reset_state_init_from_keyframes(data):
     env = TrackingEnv(quiet_cfg(rsi_prob=1.0), data, num_envs=16)
     torch.manual_seed(3)

@@ -319,3 +319,46 @@ def test_stage2_without_stage1_checkpoint_is_refused(tmp_path):
     with pytest.raises(PipelineInputError, match="stage-1"):
         train_stage2(None, None, cfg, tmp_path / "s2", stage1_dir=tmp_path / "nothing", env=ToyKeyframeEnv(4))
     assert not (tmp_path / "s2").exists()
+
+
+# ------------------------------------------------------------------------------------------ critic scale, clipping
+def test_return_normaliser_scales_the_regression_and_round_trips():
+    torch.manual_seed(0)
+    critic = DoubleCritic(4, [8])
+    obs = torch.randn(6, 4)
+    raw_sparse, raw_dense = critic.normalized(obs)
+    assert torch.equal(critic(obs)[0], raw_sparse)  # untouched statistics: identity
+    returns = 800.0 + 300.0 * torch.randn(5000)  # sparse returns of the far jump's order
+    for _ in range(300):
+        critic.sparse_returns.update(returns)
+    assert critic.sparse_returns.normalize(returns).mean().abs() < 0.01
+    assert critic.sparse_returns.normalize(returns).std() == pytest.approx(1.0, abs=0.02)
+    x = torch.randn(10)
+    assert torch.allclose(critic.sparse_returns.normalize(critic.sparse_returns.denormalize(x)), x, atol=1e-5)
+    assert torch.allclose(critic(obs)[0], critic.sparse_returns.denormalize(raw_sparse))
+    assert critic(obs)[0].abs().min() > 100.0  # values in reward units for GAE
+    assert torch.equal(critic(obs)[1], raw_dense)  # the other group keeps its own (untouched) statistics
+
+
+def test_actor_gradient_is_not_scaled_by_the_critics(tmp_path):
+    """Actor and critics are clipped apart: a huge value loss must not shrink the policy's step."""
+    from pipeline.rl.ppo import PPO, Rollout
+
+    cfg = small_cfg()
+    torch.manual_seed(0)
+    env = ToyKeyframeEnv(cfg.ppo.num_envs)
+    policy, critic = make_stage1(env, cfg)
+    ppo = PPO(policy, critic, cfg.ppo)
+    ro = Rollout.allocate(4, env.num_envs, env.actor_obs_dim, env.critic_obs_dim, policy.raw_dim, "cpu")
+    ro.actor_obs.normal_()
+    ro.critic_obs.normal_()
+    rec = ppo.act(ro.actor_obs.reshape(-1, 3), ro.critic_obs.reshape(-1, 4))
+    ro.raw_actions.copy_(rec["raw"].reshape(ro.raw_actions.shape))
+    ro.log_probs.copy_(rec["log_prob"].reshape(ro.log_probs.shape))
+    ro.means.copy_(rec["mean"].reshape(ro.means.shape))
+    ro.stds.copy_(rec["std"].reshape(ro.stds.shape))
+    ro.rewards["sparse"].normal_().mul_(1e4)  # returns far beyond the critic's reach
+    ro.rewards["dense"].normal_()
+    stats = ppo.update(ro)
+    assert stats["grad_norm_actor"] > 1e-3 and stats["grad_norm_critic"] > 1e-3
+    assert stats["value_loss_sparse"] < 100.0  # regressed in units of the group's return spread

@@ -121,6 +121,10 @@ class TrainConfig:
     backend: str = "cpu"
     iterations_stage1: int = 300
     iterations_stage2: int = 150
+    # Optional wall-clock caps (seconds, 0 = none): a stage stops at its iteration count or its cap,
+    # whichever comes first, and its curricula follow the larger of the two progress fractions.
+    time_limit_stage1_s: float = 0.0
+    time_limit_stage2_s: float = 0.0
     save_interval: int = 25
     keep_checkpoints: int = 2
     ppo: PPOConfig = field(default_factory=PPOConfig)

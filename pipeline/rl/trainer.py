@@ -425,6 +425,8 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
     meta = policy_meta(env, data, cfg, 1, phase_rate)
     trainer = Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=meta, l2c2=True, amp=amp, amp_reference=amp_ref,
                       use_phase_offset=variant.adaptive_phase_stage1, **trainer_kwargs)
+    if time_limit_s is None and cfg.time_limit_stage1_s > 0:
+        time_limit_s = cfg.time_limit_stage1_s
     return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
 
 
@@ -449,6 +451,8 @@ def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1
     meta["architecture"]["actor_hidden"] = base_meta["architecture"]["actor_hidden"]
     meta["architecture"]["adaptive_phase"] = base_meta["architecture"].get("adaptive_phase", False)
     trainer = Trainer(env, policy, critic, cfg, run_dir, stage=2, meta=meta, l2c2=False, use_phase_offset=True, **trainer_kwargs)
+    if time_limit_s is None and cfg.time_limit_stage2_s > 0:
+        time_limit_s = cfg.time_limit_stage2_s
     return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
 
 
