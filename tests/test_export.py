@@ -142,9 +142,151 @@ def test_export_variant_from_a_real_policy_folder(tmp_path):
     assert sorted(p.name for p in result.folder.iterdir()) == ["config.json", "model.safetensors",
                                                                "policy.json", "policy.onnx"]
     assert Sim2Sim(result.folder).run_episode(1.4, max_steps=3).steps >= 1
+    term = json.loads(result.metadata.read_text())["terminations"]
+    assert term["relative_to_reference"] and term["base_height_applies"] and term["base_height_margin"] == 0.25
     with pytest.raises(PipelineInputError, match="task"):
         export_variant(task="tennis_hit", variant="adamimic", data=data, policy_dir=tmp_path / "final",
                        out_dir=tmp_path / "export2")
     with pytest.raises(PipelineInputError, match="not found"):
         export_variant(task="far_jump", variant="adamimic", data=data, policy_dir=tmp_path / "missing",
                        out_dir=tmp_path / "export3")
+
+
+# ------------------------------------------------------------------------------ fall checks
+CROUCH_HEIGHT, CROUCH_TILT, FALL_FRAMES = 0.35, 0.85, 40
+
+
+def _pitch(sin_angle):  # wxyz about y: projected gravity xy = (sin, 0)
+    half = 0.5 * np.arcsin(sin_angle)
+    return np.array([np.cos(half), 0.0, np.sin(half), 0.0])
+
+
+def _roll(sin_angle):  # wxyz about x: projected gravity xy = (0, -sin)
+    half = 0.5 * np.arcsin(sin_angle)
+    return np.array([np.cos(half), np.sin(half), 0.0, 0.0])
+
+
+def _crouch_data():
+    """Stands (frames 0-14), crouches pitched forward to 0.35 m (15-29; both below the absolute
+    thresholds: |g_xy| = 0.85 > 0.8, z < 0.4), stands again; the ψ edit lifts the pelvis by
+    0.2·(ψ − 1) from the first keyframe (frame 10) on."""
+    cfg, kin = load_robot_config(), RobotKinematics()
+    q = default_qpos(cfg)
+    root, quat = np.tile(q[:3], (FALL_FRAMES, 1)), np.tile(q[3:7], (FALL_FRAMES, 1))
+    root[15:30, 2] = CROUCH_HEIGHT
+    quat[15:30] = _pitch(CROUCH_TILT)
+    motion = kin.motion(50.0, root, quat, np.tile(q[7:], (FALL_FRAMES, 1)))
+    psi = np.linspace(1.0, 2.0, 11)
+    offsets = np.zeros((11, 2, 3))
+    offsets[:, 0, 2] = 0.2 * (psi - 1.0)
+    offsets[:, 1, 2] = 0.1 * (psi - 1.0)
+    return TrackingData(task="far_jump", motion=motion, keyframe_frames=np.array([10, 30]),
+                        keyframe_labels=("crouch", "landing"), sparse_scale=np.array([1.0, 50.0]),
+                        edited=np.array([True, True]), psi=psi, keyframe_offsets=offsets, psi_raw=1.0,
+                        psi_ranges={"easy": [(1.0, 1.5)], "hard": [(1.5, 2.0)]})
+
+
+# (frame, ψ-sample, pelvis z, pelvis quaternion, decision of the relative checks)
+FALL_CASES = [
+    (20, 0, CROUCH_HEIGHT, _pitch(CROUCH_TILT), None),  # following the crouch: absolute would end it
+    (20, 0, 0.05, _roll(1.0), "tilt"),  # lying on its side in the crouch: a real fall
+    (5, 0, 0.10, _pitch(1.0), "tilt"),  # lying face down while the reference stands
+    (5, 0, 0.30, _pitch(0.3), "height"),  # sunk while the reference stands
+    (20, 0, CROUCH_HEIGHT, _pitch(0.0), "tilt"),  # upright where the reference leans 0.85
+    (20, 10, 0.20, _pitch(CROUCH_TILT), "height"),  # ψ = 2 lifts the crouch to 0.55 m: 0.2 is a fall ...
+    (20, 0, 0.20, _pitch(CROUCH_TILT), None),  # ... but not at ψ = 1 (limit 0.35 − 0.25)
+    (35, 10, 0.60, _pitch(0.2), None),  # standing again, a little low and leaning
+    (14, 0, CROUCH_HEIGHT, _pitch(CROUCH_TILT), "tilt"),  # the crouch one frame early ...
+    (15, 0, CROUCH_HEIGHT, _pitch(CROUCH_TILT), None),  # ... and on time: the frame matters
+]
+
+
+def _env_decisions(env_cfg, data, cases):
+    """The env's fall decisions ('tilt' before 'height', as sim2sim reports) for hand-made states:
+    its physics step is skipped, so it judges exactly the pose it was given at the wanted frame."""
+    from pipeline.envs.tracking_env import TrackingEnv
+
+    n = len(cases)
+    env = TrackingEnv(env_cfg, data, num_envs=n)
+    env.reset()
+    env.termination_threshold = float("inf")  # falls only, like the evaluation
+    qpos = env.backend.qpos.clone()
+    for i, (_, _, z, quat, _) in enumerate(cases):
+        qpos[i, 2], qpos[i, 3:7] = z, torch.as_tensor(quat)
+    env.backend.set_state(torch.arange(n), qpos, torch.zeros_like(env.backend.qvel))
+    env.backend.step = lambda ctrl: None
+    frames = torch.tensor([c[0] for c in cases])
+    env.sample[:] = torch.tensor([c[1] for c in cases])
+    env.phase[:] = frames.to(torch.float64) / (env.num_frames - 1) - env.dphi  # lands on `frames`
+    _, _, terminated, _, info = env.step(torch.zeros(n, env.action_dim))
+    assert torch.equal(info["frame"], frames)
+    by = info["terminated_by"]
+    assert torch.equal(terminated, by["tilt"] | by["base_height"])
+    return [("tilt" if t else "height" if h else None) for t, h in zip(by["tilt"].tolist(), by["base_height"].tolist())]
+
+
+def _sim2sim_decisions(env_cfg, data, cases):
+    from pipeline.export.metadata import termination_metadata
+    from pipeline.export.sim2sim import FallCheck, reference_frame
+
+    cfg = load_robot_config()
+    meta = build_metadata(task=data.task, variant="adamimic", robot=cfg, data=data,
+                          obs_layout=observation_layout(cfg), terminations=termination_metadata(env_cfg.terminations, data.task))
+    meta = json.loads(json.dumps(meta))  # what sim2sim reads from policy.json
+    t = meta["phase"]["num_frames"]
+    out = []
+    for frame, sample, z, quat, _ in cases:
+        w, x, y, _z = quat
+        gravity = np.array([2 * (w * y - x * _z), -2 * (y * _z + w * x), -1.0])
+        phase = frame / (t - 1)
+        assert reference_frame(phase, t) == frame
+        out.append(FallCheck.from_metadata(meta, float(data.psi[sample]))(gravity, z, reference_frame(phase, t)))
+    return out
+
+
+def test_sim2sim_fall_check_matches_the_env():
+    from pipeline.envs.config import EnvConfig
+
+    data = _crouch_data()
+    env_cfg = EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0})
+    assert env_cfg.terminations.relative_to_reference  # the default being mirrored
+    expected = [c[-1] for c in FALL_CASES]
+    assert _sim2sim_decisions(env_cfg, data, FALL_CASES) == expected
+    assert _env_decisions(env_cfg, data, FALL_CASES) == expected
+    # the absolute checks (the old sim2sim) end the closely followed crouch at once
+    absolute = EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0,
+                                    "terminations": {"relative_to_reference": False}})
+    assert _sim2sim_decisions(absolute, data, FALL_CASES[:1]) == ["tilt"]
+    assert _sim2sim_decisions(absolute, data, FALL_CASES) == _env_decisions(absolute, data, FALL_CASES)
+    # a task exempt from the height check: neither checks height
+    exempt = EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0,
+                                  "terminations": {"base_height_exempt_tasks": ["far_jump"]}})
+    assert "height" not in _sim2sim_decisions(exempt, data, FALL_CASES)
+    assert _sim2sim_decisions(exempt, data, FALL_CASES) == _env_decisions(exempt, data, FALL_CASES)
+
+
+def test_reference_metadata_per_frame():
+    from pipeline.export.metadata import reference_metadata
+
+    data = _crouch_data()
+    grid = np.linspace(1.0, 2.0, 41)
+    ref = json.loads(json.dumps(reference_metadata(data, grid)))
+    assert ref["num_frames"] == FALL_FRAMES
+    np.testing.assert_allclose(ref["root_height"], data.motion.root_pos[:, 2])
+    g = np.array(ref["projected_gravity_xy"])
+    np.testing.assert_allclose(g[20], [CROUCH_TILT, 0.0], atol=1e-9)
+    np.testing.assert_allclose(g[5], [0.0, 0.0], atol=1e-9)
+    dz = np.array(ref["root_height_offset"])  # (G, T): the latest keyframe's z edit at each frame
+    assert dz.shape == (41, FALL_FRAMES)
+    np.testing.assert_allclose(dz[:, :10], 0.0)
+    np.testing.assert_allclose(dz[:, 10:30], np.repeat(0.2 * (grid - 1.0)[:, None], 20, 1), atol=1e-12)
+    np.testing.assert_allclose(dz[:, 30:], np.repeat(0.1 * (grid - 1.0)[:, None], 10, 1), atol=1e-12)
+
+
+def test_sim2sim_phase_to_frame_is_the_envs():
+    from pipeline.export.sim2sim import reference_frame
+
+    t = FALL_FRAMES
+    phases = np.concatenate([np.linspace(-0.1, 1.1, 997), (np.arange(t) + 0.5) / (t - 1)])  # incl. halves
+    env_frames = (torch.as_tensor(phases) * (t - 1)).round().long().clamp(0, t - 1)
+    assert [reference_frame(p, t) for p in phases] == env_frames.tolist()

@@ -4,7 +4,18 @@ JSON-ready dict, written inside the ONNX (metadata_props) and beside it (policy.
 robot (joint names/order, PD gains, default pose, action scale, control rate), the observation
 layout (terms in order, their sizes, offsets and scales, history length and order), the task
 (name, ψ ranges, phase rate and its adapter bounds), keyframes (phases, targets and their
-ψ-dependent offsets on a grid), the start pose, terminations, and the terrain on the ψ grid.
+ψ-dependent offsets on a grid), the start pose, terminations, the reference the fall checks
+compare against, and the terrain on the ψ grid.
+
+Fall checks (the contract sim2sim implements, the same as `TrackingEnv`): the reference frame of
+a phase φ is `round(φ·(T − 1))` clamped to [0, T − 1] (`reference.frame_of_phase`). With
+`terminations.relative_to_reference` an episode ends when
+  tilt:   |g_xy − reference.projected_gravity_xy[frame]| > max_tilt
+  height: z < min(min_base_height, reference.root_height[frame] + z_offset(ψ, frame) − base_height_margin)
+          (only where `terminations.base_height_applies`); z_offset interpolates
+          `reference.root_height_offset` (G, T) linearly on `reference.psi_grid`,
+and otherwise on the absolute values |g_xy| > max_tilt, z < min_base_height. g is the gravity
+direction (0, 0, −1) in the pelvis frame, z the pelvis world height.
 
 Observation layout convention (the contract sim2sim implements): one step's observation is the
 concatenation of `terms` in order, each `(value - offset) * scale`; the policy input is the
@@ -22,7 +33,7 @@ import numpy as np
 from pipeline.keyframes.tracking_data import TrackingData
 from pipeline.robot.g1 import RobotConfig
 
-METADATA_VERSION = 1
+METADATA_VERSION = 2  # 2: reference arrays + relative fall-check settings
 PSI_GRID_POINTS = 41
 
 
@@ -53,20 +64,64 @@ def _grid(data: TrackingData, points: int) -> np.ndarray:
         else np.array([float(data.psi[0])])
 
 
-def keyframe_offsets_on_grid(data: TrackingData, grid: np.ndarray) -> np.ndarray:
-    """(G, K, 3) keyframe offsets at each grid ψ: linear interpolation between the samples
-    (sorted by ψ; samples sharing a ψ are averaged)."""
-    order = np.argsort(data.psi)
-    psi, offsets = data.psi[order], data.keyframe_offsets[order]
+def samples_on_grid(psi: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Per-sample values (S, ...) at each grid ψ (G, ...): linear interpolation between the
+    samples sorted by ψ (samples sharing a ψ are averaged), constant beyond the ends."""
+    psi, values = np.asarray(psi, dtype=np.float64), np.asarray(values, dtype=np.float64)
     unique, inverse = np.unique(psi, return_inverse=True)
-    summed = np.zeros((len(unique),) + offsets.shape[1:])
-    np.add.at(summed, inverse, offsets)
-    mean = summed / np.bincount(inverse)[:, None, None]
-    out = np.empty((len(grid),) + offsets.shape[1:])
-    for k in range(offsets.shape[1]):
-        for axis in range(3):
-            out[:, k, axis] = np.interp(grid, unique, mean[:, k, axis])
-    return out
+    summed = np.zeros((len(unique),) + values.shape[1:])
+    np.add.at(summed, inverse, values)
+    mean = (summed.reshape(len(unique), -1) / np.bincount(inverse)[:, None])
+    out = np.stack([np.interp(grid, unique, column) for column in mean.T], axis=-1)
+    return out.reshape((len(grid),) + values.shape[1:])
+
+
+def keyframe_offsets_on_grid(data: TrackingData, grid: np.ndarray) -> np.ndarray:
+    """(G, K, 3) keyframe offsets at each grid ψ (see `samples_on_grid`)."""
+    return samples_on_grid(data.psi, data.keyframe_offsets, grid)
+
+
+def projected_gravity_xy(quat_wxyz: np.ndarray) -> np.ndarray:
+    """(T, 2) x, y of the world gravity direction (0, 0, −1) in the frame of each quaternion
+    (the env's `torch_math.projected_gravity`)."""
+    w, x, y, z = np.moveaxis(np.asarray(quat_wxyz, dtype=np.float64), -1, 0)
+    return np.stack([2.0 * (w * y - x * z), -2.0 * (y * z + w * x)], axis=-1)
+
+
+def reference_metadata(data: TrackingData, grid: np.ndarray) -> dict:
+    """What the reference-relative fall checks read per frame: the root's projected-gravity xy
+    and height of the unedited reference, and the ψ edit's z offset of the root at every frame
+    on the ψ grid (D_edit: the latest keyframe's offset, D_rule: the dense offset) — the env's
+    `offset_table[..., 2]`, interpolated in ψ like the keyframe offsets."""
+    motion = data.motion
+    t, s = motion.num_frames, data.num_samples
+    frames, samples = np.tile(np.arange(t), s), np.repeat(np.arange(s), t)
+    z_offsets = np.asarray(data.offsets_at_frames(samples, frames))[:, 2].reshape(s, t)
+    return {
+        "num_frames": int(t),
+        "frame_of_phase": "round(phase * (num_frames - 1)), clamped to [0, num_frames - 1]",
+        "root_height": motion.root_pos[:, 2].tolist(),  # (T,) m
+        "projected_gravity_xy": projected_gravity_xy(motion.root_quat).tolist(),  # (T, 2)
+        "psi_grid": grid.tolist(),
+        "root_height_offset": samples_on_grid(data.psi, z_offsets, grid).tolist(),  # (G, T) m
+    }
+
+
+def termination_metadata(terminations=None, task: str | None = None) -> dict:
+    """The env's fall checks (`pipeline.envs.config.TerminationConfig`, its defaults when None)
+    for `task`. No keyframe-error limit: evaluation (whose success rate sim2sim reproduces) runs
+    without that termination."""
+    if terminations is None:
+        from pipeline.envs.config import TerminationConfig
+
+        terminations = TerminationConfig()
+    applies = bool(terminations.base_height_enabled) and task not in terminations.base_height_exempt_tasks
+    return {"max_tilt": float(terminations.max_tilt),
+            "min_base_height": float(terminations.min_base_height),
+            "base_height_margin": float(terminations.base_height_margin),
+            "relative_to_reference": bool(terminations.relative_to_reference),
+            "base_height_applies": applies,
+            "keyframe_body_error_m": None}
 
 
 def terrain_geoms(model: mujoco.MjModel) -> list[dict]:
@@ -137,8 +192,8 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
             "offsets": keyframe_offsets_on_grid(data, grid).tolist(),  # (G, K, 3)
         },
         "initial_state": {"qpos": start.tolist(), "qvel": qvel0.tolist()},
-        "terminations": terminations or {"max_tilt": 0.8, "min_base_height": 0.4,
-                                         "keyframe_body_error_m": None},
+        "terminations": terminations or termination_metadata(task=task),
+        "reference": reference_metadata(data, grid),
         "success_threshold_m": 1.0,
         "terrain": terrain or {"geoms": [], "psi_grid": [], "layouts": []},
     }

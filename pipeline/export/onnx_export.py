@@ -144,7 +144,7 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
                    env_cfg=None) -> ExportResult:
     """The `export` stage: trained policy folder (models/<task>/<variant>/final) → hub-format
     folder with policy.onnx + policy.json (models/<task>/<variant>/export)."""
-    from pipeline.export.metadata import build_metadata, observation_layout, terrain_metadata
+    from pipeline.export.metadata import build_metadata, observation_layout, termination_metadata, terrain_metadata
     from pipeline.rl.checkpoint import load_policy
     from pipeline.robot.g1 import load_robot_config
 
@@ -170,12 +170,7 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
 
         grid = np.linspace(float(data.psi.min()), float(data.psi.max()), 41)
         terrain = terrain_metadata(terrain_builder(data.terrain), lambda p: terrain_layout(data.terrain, p), grid)
-    terminations = {"max_tilt": 0.8, "min_base_height": 0.4, "keyframe_body_error_m": None}
-    if env_cfg is not None:
-        t = env_cfg.terminations
-        exempt = (not t.base_height_enabled) or task in t.base_height_exempt_tasks
-        terminations = {"max_tilt": t.max_tilt, "min_base_height": None if exempt else t.min_base_height,
-                        "keyframe_body_error_m": None}
+    terminations = termination_metadata(env_cfg.terminations if env_cfg is not None else None, task)
     metadata = build_metadata(task=task, variant=variant, robot=robot, data=data, obs_layout=layout,
                               terminations=terminations, terrain=terrain)
     metadata["policy_stage"] = meta.get("stage")

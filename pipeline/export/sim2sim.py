@@ -6,6 +6,8 @@ metadata's layout, applies the joint targets through the PD actuators, advances 
 the policy's Δφ^Δ and scores the episode with the evaluation's success definition (mean tracked-
 body world error ≤ 1 m at every keyframe, every keyframe reached). The scene is the G1 model from
 `pipeline.robot` (the vendored MJCF) with the gains and terrain taken from the metadata.
+Episodes end like the evaluation's (`FallCheck`): falls judged against the reference at the
+current frame, from the metadata's `reference` arrays, so its success rate reproduces it.
 """
 
 from __future__ import annotations
@@ -133,6 +135,61 @@ def build_scene(meta: dict, psi: float, visual: bool = False) -> mujoco.MjModel:
     return model
 
 
+# ------------------------------------------------------------------------------ falls
+def reference_frame(phase: float, num_frames: int) -> int:
+    """The reference frame of a phase, as the env maps it (round half to even, like torch)."""
+    return int(np.clip(np.rint(phase * (num_frames - 1)), 0, num_frames - 1))
+
+
+@dataclass(frozen=True)
+class FallCheck:
+    """The env's fall terminations for one episode at one ψ (see `pipeline.export.metadata`).
+
+    Relative (the reference arrays given): tilt |g_xy − g_xy,ref[frame]| > max_tilt, height
+    z < min(min_base_height, z_ref[frame] − base_height_margin) with z_ref including the ψ edit.
+    Absolute (no arrays): |g_xy| > max_tilt, z < min_base_height. `min_base_height` None: no
+    height check for this task."""
+
+    max_tilt: float
+    min_base_height: float | None
+    base_height_margin: float = 0.0
+    ref_gravity_xy: np.ndarray | None = None  # (T, 2)
+    ref_root_height: np.ndarray | None = None  # (T,) reference pelvis z + the ψ edit's z offset
+
+    @classmethod
+    def from_metadata(cls, meta: dict, psi: float) -> "FallCheck":
+        term = meta.get("terminations") or {}
+        # before metadata version 2 the height check was off where min_base_height was None
+        applies = term.get("base_height_applies", term.get("min_base_height") is not None)
+        min_height = float(term["min_base_height"]) if applies and term.get("min_base_height") is not None else None
+        max_tilt = float(term.get("max_tilt", np.inf))
+        ref = meta.get("reference")
+        if not term.get("relative_to_reference", False):
+            return cls(max_tilt, min_height)
+        if not ref:
+            raise PipelineInputError(METADATA_NAME, "reference",
+                                     "relative fall checks need the reference arrays (re-run the export)")
+        offset = _interp_grid(ref["psi_grid"], np.asarray(ref["root_height_offset"], dtype=np.float64), psi)
+        return cls(max_tilt, min_height, float(term.get("base_height_margin", 0.0)),
+                   np.asarray(ref["projected_gravity_xy"], dtype=np.float64),
+                   np.asarray(ref["root_height"], dtype=np.float64) + offset)
+
+    def __call__(self, gravity: np.ndarray, base_height: float, frame: int) -> str | None:
+        """Which check ends the episode: "tilt", "height" (tilt first when both fire) or None."""
+        tilt_xy = np.asarray(gravity[:2], dtype=np.float64)
+        if self.ref_gravity_xy is not None:
+            tilt_xy = tilt_xy - self.ref_gravity_xy[frame]
+        if float(tilt_xy @ tilt_xy) > self.max_tilt**2:
+            return "tilt"
+        if self.min_base_height is not None:
+            min_height = self.min_base_height
+            if self.ref_root_height is not None:
+                min_height = min(min_height, self.ref_root_height[frame] - self.base_height_margin)
+            if base_height < min_height:
+                return "height"
+        return None
+
+
 # ------------------------------------------------------------------------------ observations
 @dataclass
 class RobotState:
@@ -254,6 +311,8 @@ class Sim2Sim:
 
         targets = self.keyframe_targets(psi)
         term = m.get("terminations") or {}
+        fall = FallCheck.from_metadata(m, psi)
+        num_frames = int(m["phase"]["num_frames"])
         start_pos = data.qpos[0:3].copy()
         w, x, y, z = data.qpos[3:7]
         start_yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
@@ -296,12 +355,9 @@ class Sim2Sim:
                 on_step(model, data, info)
             if end == "keyframe_error":
                 break
-            gravity = state.projected_gravity()
-            if np.linalg.norm(gravity[:2]) > term.get("max_tilt", np.inf):
-                end = "tilt"
-                break
-            if term.get("min_base_height") is not None and data.qpos[2] < term["min_base_height"]:
-                end = "height"
+            fallen = fall(state.projected_gravity(), float(data.qpos[2]), reference_frame(phase, num_frames))
+            if fallen is not None:
+                end = fallen
                 break
             if phase >= 1.0 - 1e-6:
                 end = "done"
