@@ -415,6 +415,62 @@ class TrackingEnv:
             self._reset_worlds(done.nonzero().squeeze(-1))
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
 
+    # ------------------------------------------------------------------------------------ resume
+    # Per-world buffers that, with the physics state and the per-world model, decide every future step.
+    _STATE_BUFFERS = ("phase", "frame", "sample", "next_kf", "episode_step", "prev_action", "prev_action2",
+                      "prev_joint_vel", "odometry", "odom_origin", "odom_origin_quat", "obs_history",
+                      "privileged", "target_history", "delay_lag", "delay_substeps", "push_timer")
+
+    def _model_fields(self) -> list[str]:
+        """The MjModel fields this env writes per world: the randomiser's and the terrain's."""
+        names = list(self.randomizer.base)
+        if self._terrain_fields is not None:
+            names.append("geom_pos")
+            if self._terrain_fields[1] is not None:
+                names.append("geom_size")
+        return names
+
+    def state_dict(self) -> dict:
+        """Everything that determines future steps, on the CPU, for a bit-exact resume (the trainer
+        saves it with its checkpoint). Randomness is drawn from torch's global RNG, which the caller
+        owns and restores itself (the trainer does); the randomiser's numpy RNG is re-seeded from it
+        at every reset but is saved anyway."""
+        ids = np.arange(self.num_envs)
+        qpos, qvel = self.backend.get_state()
+        return {
+            "num_envs": self.num_envs,
+            "qpos": torch.from_numpy(np.array(qpos, dtype=np.float64)),
+            "qvel": torch.from_numpy(np.array(qvel, dtype=np.float64)),
+            "model_fields": {name: np.array(self.backend.get_model_field(name, ids)) for name in self._model_fields()},
+            "buffers": {name: getattr(self, name).detach().cpu().clone() for name in self._STATE_BUFFERS},
+            "target_ptr": int(self.target_ptr),
+            "termination_threshold": float(self.termination_threshold),
+            "penalty_scale": float(self.penalty_scale),
+            "randomizer_rng": self.randomizer.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restores `state_dict()` of an env built with the same config, data and number of worlds."""
+        if int(state.get("num_envs", -1)) != self.num_envs:
+            raise PipelineInputError("env state", "num_envs",
+                                     f"checkpoint has {state.get('num_envs')} worlds, this env {self.num_envs}")
+        ids = np.arange(self.num_envs)
+        # model first: set_state's forward pass then sees each world's own masses and terrain
+        for name, values in state["model_fields"].items():
+            self.backend.set_model_field(name, ids, np.asarray(values))
+        for name in self._STATE_BUFFERS:
+            saved = state["buffers"][name]
+            current = getattr(self, name)
+            if saved.shape != current.shape or saved.dtype != current.dtype:
+                raise PipelineInputError("env state", name,
+                                         f"expected {tuple(current.shape)} {current.dtype}, got {tuple(saved.shape)} {saved.dtype}")
+            setattr(self, name, saved.to(self.device).clone())
+        self.target_ptr = int(state["target_ptr"])
+        self.termination_threshold = float(state["termination_threshold"])
+        self.penalty_scale = float(state["penalty_scale"])
+        self.randomizer.rng.bit_generator.state = state["randomizer_rng"]
+        self.backend.set_state(ids, state["qpos"].numpy(), state["qvel"].numpy())
+
     # ------------------------------------------------------------------------------------ internals
     def _global_terms(self, err2, quat, target_quat):
         s2 = self.cfg.rewards.sigma2

@@ -91,6 +91,14 @@ class PhysicsBackend(ABC):
     def get_model_field(self, name: str, world_ids) -> np.ndarray:
         """Per-world values of MjModel field `name`, (n, *field.shape), float64/int as in MjModel."""
 
+    def get_state(self, world_ids=None) -> tuple[np.ndarray, np.ndarray]:
+        """(qpos (n, nq), qvel (n, nv)) float64 of worlds `world_ids` (None: all), for checkpoints.
+        This default reads the float32 views; a backend that integrates in float64 returns its own
+        state so that set_state(get_state()) continues bit for bit."""
+        ids = np.arange(self.num_worlds) if world_ids is None else self._world_ids(world_ids)
+        return (self.qpos.detach().cpu().numpy().astype(np.float64)[ids],
+                self.qvel.detach().cpu().numpy().astype(np.float64)[ids])
+
     def close(self) -> None:
         """Releases threads / device memory; the backend is unusable afterwards."""
 

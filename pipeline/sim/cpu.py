@@ -157,6 +157,11 @@ class CpuBackend(PhysicsBackend):
         self._refresh_sensor_views(sensors, rows=ids)
         self._push_to_device()
 
+    def get_state(self, world_ids=None) -> tuple[np.ndarray, np.ndarray]:
+        # the float64 integrator state, not the float32 views: a resume must continue bit for bit
+        ids = np.arange(self.num_worlds) if world_ids is None else self._world_ids(world_ids)
+        return self._qpos64[ids].copy(), self._qvel64[ids].copy()
+
     # ---- per-world model parameters ----
 
     def set_model_field(self, name: str, world_ids, values) -> None:

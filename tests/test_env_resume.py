@@ -1,0 +1,70 @@
+"""TrackingEnv.state_dict/load_state_dict: a fresh env loaded from a snapshot continues bit for bit
+(domain randomisation, pushes, control delay, RSI and odometry noise on), alone and under the trainer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.envs.config import EnvConfig
+from pipeline.envs.tracking_env import TrackingEnv
+from test_env import data  # noqa: F401  (the module fixture: a 61-frame standing clip, 3 keyframes)
+
+N = 6
+
+
+def noisy_cfg() -> EnvConfig:
+    # everything random on; pushes often so a few steps see some
+    return EnvConfig.from_dict({"rsi_prob": 0.5, "randomization": {"push": {"interval_s": [0.04, 0.2]}}})
+
+
+def run(env, actions):
+    out = []
+    for a in actions:
+        obs, rew, term, trunc, info = env.step(a)
+        out.append((obs["actor"], obs["critic"], rew["sparse"], rew["dense"], term, trunc,
+                    info["final_obs"]["critic"], info["sample"]))
+    return out
+
+
+def test_fresh_env_continues_bit_for_bit_after_load(data):  # noqa: F811
+    cfg = noisy_cfg()
+    assert cfg.randomization.enabled
+    torch.manual_seed(0)
+    env = TrackingEnv(cfg, data, num_envs=N)
+    env.reset()
+    env.update_curriculum(0.3)
+    for _ in range(12):
+        env.step(torch.randn(N, env.action_dim) * 0.5)
+    actions = [torch.randn(N, env.action_dim) * 0.5 for _ in range(25)]  # drawn before the RNG snapshot
+    state = env.state_dict()
+    rng = torch.get_rng_state()
+    # the snapshot holds only CPU data (and copies: stepping on must not change it)
+    assert state["qpos"].dtype == torch.float64
+    assert all(v.device.type == "cpu" for v in state["buffers"].values())
+    phase_at_save = state["buffers"]["phase"].clone()
+    expected = run(env, actions)
+    assert torch.equal(state["buffers"]["phase"], phase_at_save)
+    assert any(bool((e[4] | e[5]).any()) for e in expected), "no episode ended: resets are not exercised"
+
+    torch.manual_seed(123)  # a fresh env with other randomisation: everything must come from the snapshot
+    fresh = TrackingEnv(cfg, data, num_envs=N)
+    fresh.reset()
+    fresh.load_state_dict(state)
+    torch.set_rng_state(rng)  # the caller's RNG (the trainer restores its own)
+    got = run(fresh, actions)
+    for t, (e, g) in enumerate(zip(expected, got)):
+        for i, (a, b) in enumerate(zip(e, g)):
+            assert torch.equal(a, b), f"step {t}, output {i}"
+    assert fresh.termination_threshold == env.termination_threshold and fresh.penalty_scale == env.penalty_scale
+    ids = np.arange(N)
+    for name in ("body_mass", "geom_friction", "actuator_gainprm"):
+        assert np.array_equal(fresh.backend.get_model_field(name, ids), env.backend.get_model_field(name, ids))
+
+
+def test_load_rejects_another_number_of_worlds(data):  # noqa: F811
+    state = TrackingEnv(noisy_cfg(), data, num_envs=2).state_dict()
+    with pytest.raises(PipelineInputError, match="num_envs"):
+        TrackingEnv(noisy_cfg(), data, num_envs=3).load_state_dict(state)
