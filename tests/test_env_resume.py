@@ -68,3 +68,35 @@ def test_load_rejects_another_number_of_worlds(data):  # noqa: F811
     state = TrackingEnv(noisy_cfg(), data, num_envs=2).state_dict()
     with pytest.raises(PipelineInputError, match="num_envs"):
         TrackingEnv(noisy_cfg(), data, num_envs=3).load_state_dict(state)
+
+
+def test_trainer_resume_on_the_tracking_env_is_bit_for_bit(tmp_path, data):  # noqa: F811
+    from pipeline.rl.trainer import Trainer
+    from test_rl import META, make_stage1, small_cfg
+
+    cfg = small_cfg(save_interval=1, ppo={"num_envs": 8, "steps_per_iteration": 8, "epochs": 1, "minibatches": 2})
+
+    def trainer(run_dir, seed):
+        torch.manual_seed(seed)
+        env = TrackingEnv(noisy_cfg(), data, num_envs=cfg.ppo.num_envs)
+        policy, critic = make_stage1(env, cfg, seed)
+        meta = {**META, "robot": "g1", "action_dim": env.action_dim, "actor_obs_dim": env.actor_obs_dim,
+                "critic_obs_dim": env.critic_obs_dim, "obs_layout": env.obs_layout(), "phase_rate": env.dphi}
+        return Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=meta, tensorboard=False, progress=False)
+
+    straight = trainer(tmp_path / "a", 0)
+    straight.run(2)
+    trainer(tmp_path / "b", 0).run(1)  # "killed" after the checkpoint at iteration 1
+    # the checkpoint carries the env (so the trainer does not restart episodes at its boundaries)
+    from pipeline.rl.checkpoint import CheckpointManager
+    ckpt = CheckpointManager(tmp_path / "b").latest()
+    assert "env" in CheckpointManager.load_state(ckpt)
+    resumed = trainer(tmp_path / "b", 99)  # other init and other env randomisation: all must come from disk
+    resumed.run(2, resume=True)
+    for (k, a), b in zip(straight.policy.state_dict().items(), resumed.policy.state_dict().values()):
+        assert torch.equal(a, b), k
+    for a, b in zip(straight.critic.state_dict().values(), resumed.critic.state_dict().values()):
+        assert torch.equal(a, b)
+    assert straight.history[-1]["policy_loss"] == resumed.history[-1]["policy_loss"]
+    assert straight.history[-1]["reward_dense"] == resumed.history[-1]["reward_dense"]
+    assert straight.env.penalty_scale == resumed.env.penalty_scale
