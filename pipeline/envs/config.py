@@ -8,11 +8,10 @@ and out-of-range values, so a typo in params.yaml is caught before anything runs
 from __future__ import annotations
 
 import dataclasses
-import types
-import typing
 from dataclasses import dataclass, field
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.common.typed_config import replace_from_mapping
 
 LOWER_BODY = ("pelvis", "left_hip", "left_knee", "left_ankle", "right_hip", "right_knee", "right_ankle")
 
@@ -177,7 +176,7 @@ class EnvConfig:
 
     @classmethod
     def from_dict(cls, raw: dict | None, where: str = "env") -> "EnvConfig":
-        cfg = _build(cls, raw or {}, where, cls())
+        cfg = replace_from_mapping(cls(), raw or {}, where)
         cfg.validate(where)
         return cfg
 
@@ -228,50 +227,3 @@ class EnvConfig:
             bad("physics_threads", "must be >= 1")
         if self.torch_threads < 0:
             bad("torch_threads", "must be >= 0")
-
-
-def _build(cls, raw, where: str, base):
-    """`base` (an instance of dataclass `cls`, holding the defaults) with the keys of mapping `raw`
-    replaced, recursively, checking keys and scalar types."""
-    if not isinstance(raw, dict):
-        raise PipelineInputError(where.split(".")[0], where, f"expected a mapping, got {type(raw).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(raw) - names)
-    if unknown:
-        raise PipelineInputError(where.split(".")[0], f"{where}.{unknown[0]}", f"unknown key (known: {sorted(names)})")
-    kwargs = {}
-    for key, value in raw.items():
-        kwargs[key] = _convert(hints[key], value, f"{where}.{key}", getattr(base, key))
-    return dataclasses.replace(base, **kwargs)
-
-
-def _convert(hint, value, key: str, default=None):
-    source = key.split(".")[0]
-    if dataclasses.is_dataclass(hint):
-        return _build(hint, value, key, default)
-    origin = typing.get_origin(hint)
-    if origin is list:
-        if not isinstance(value, (list, tuple)):
-            raise PipelineInputError(source, key, f"expected a list, got {value!r}")
-        (item,) = typing.get_args(hint)
-        return [_convert(item, v, f"{key}[{i}]") for i, v in enumerate(value)]
-    if origin in (typing.Union, types.UnionType):
-        raise PipelineInputError(source, key, "unsupported type")  # none are used
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise PipelineInputError(source, key, f"expected true/false, got {value!r}")
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise PipelineInputError(source, key, f"expected an integer, got {value!r}")
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise PipelineInputError(source, key, f"expected a number, got {value!r}")
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise PipelineInputError(source, key, f"expected a string, got {value!r}")
-        return value
-    return value

@@ -11,10 +11,11 @@ Profiles:
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.common.typed_config import replace_from_mapping
 
 
 @dataclass(frozen=True)
@@ -144,58 +145,10 @@ class TrainConfig:
         profile = raw.get("profile", "cpu")
         if profile not in PROFILES:
             raise PipelineInputError(where, "profile", f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
-        base = PROFILES[profile]().to_dict()
-        cfg = _build(cls, _merge(base, raw, where), where)
+        cfg = replace_from_mapping(PROFILES[profile](), raw, where)
         get_variant(cfg.variant, where)
         _validate(cfg, where)
         return cfg
-
-
-def _merge(base: dict, override: dict, where: str) -> dict:
-    out = dict(base)
-    for key, value in override.items():
-        if key not in base:
-            raise PipelineInputError(where, key, f"unknown key; known: {', '.join(base)}")
-        if isinstance(base[key], dict):
-            if not isinstance(value, dict):
-                raise PipelineInputError(where, key, f"expected a mapping, got {type(value).__name__}")
-            out[key] = _merge(base[key], value, f"{where}.{key}")
-        else:
-            out[key] = value
-    return out
-
-
-def _build(cls, raw: dict, where: str):
-    kwargs = {}
-    for f in fields(cls):
-        value = raw[f.name]
-        sub = _SUBCONFIGS.get(f.name) if cls is TrainConfig else None
-        if sub is not None:
-            kwargs[f.name] = _build(sub, value, f"{where}.{f.name}")
-            continue
-        default = getattr(cls(), f.name)
-        try:
-            if isinstance(default, bool):
-                if not isinstance(value, bool):
-                    raise TypeError
-            elif isinstance(default, int):
-                if isinstance(value, bool) or int(value) != value:
-                    raise TypeError
-                value = int(value)
-            elif isinstance(default, float):
-                value = float(value)
-            elif isinstance(default, list):
-                value = [int(v) for v in value]
-            elif isinstance(default, str):
-                if not isinstance(value, str):
-                    raise TypeError
-        except (TypeError, ValueError):
-            raise PipelineInputError(where, f.name, f"expected {type(default).__name__}, got {value!r}") from None
-        kwargs[f.name] = value
-    return cls(**kwargs)
-
-
-_SUBCONFIGS = {"ppo": PPOConfig, "network": NetworkConfig, "amp": AMPConfig}
 
 
 def _validate(cfg: TrainConfig, where: str) -> None:
