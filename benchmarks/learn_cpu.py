@@ -12,6 +12,7 @@ body error <= 1 m at every keyframe. Prints the curve and ends with `success=<s>
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 import time
@@ -23,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 CLIP = ROOT.parent / "shared" / "data" / "adamimic_smpl" / "far_jump.npz"
 
 
-def build_data(segment_s: float, num_samples: int = 64):
+def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None):
     from pipeline.human.importers import load_human_motion
     from pipeline.keyframes.config import load_tasks, load_yaml_strict
     from pipeline.keyframes.edit import build_tracking_data
@@ -32,6 +33,8 @@ def build_data(segment_s: float, num_samples: int = 64):
 
     tasks = load_tasks(load_yaml_strict(ROOT / "pipeline" / "keyframes" / "paper_tasks.yaml")["tasks"])
     task = tasks["far_jump"]
+    if psi_range is not None:
+        task = dataclasses.replace(task, psi=dataclasses.replace(task.psi, train=(tuple(psi_range),)))
     human = load_human_motion(CLIP)
     motion, _ = retarget(human, RetargetConfig(), fps_out=50, progress=False)
     full = select_keyframes(motion, task)
@@ -47,12 +50,44 @@ def build_data(segment_s: float, num_samples: int = 64):
     return data, keyframes, (start, stop, motion.num_frames)
 
 
+def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 64) -> dict:
+    """The evaluate stage's metrics on the trained ψ range: deterministic policy, episodes from t = 0
+    over the whole segment, no randomisation, success = every keyframe within 1 m."""
+    from pipeline.evaluation.config import EvalConfig
+    from pipeline.evaluation.evaluate import PolicyRunner, default_env_factory, evaluate_policy
+    from pipeline.evaluation.metrics import aggregate
+    from pipeline.rl.checkpoint import load_policy
+
+    module, _ = load_policy(policy_dir)
+    eval_cfg = EvalConfig(episodes_per_range=episodes, runs=1, num_envs=min(episodes, 32), ranges=("train",))
+    result = evaluate_policy(PolicyRunner(module), data, eval_cfg, default_env_factory(env_cfg, eval_cfg))
+    return aggregate(result.runs[0]["train"])
+
+
+def set_dotted(tree: dict, item: str) -> None:
+    """`env.randomization.enabled=false` -> tree["env"]["randomization"]["enabled"] = False (YAML scalar)."""
+    import yaml
+
+    key, sep, value = item.partition("=")
+    parts = key.split(".")
+    if not sep or parts[0] not in tree or len(parts) < 2:
+        raise SystemExit(f"--set {item!r}: expected env.KEY=VALUE or train.KEY=VALUE")
+    node = tree[parts[0]]
+    for part in parts[1:-1]:
+        node = node.setdefault(part, {})
+    node[parts[-1]] = yaml.safe_load(value)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=20.0)
     parser.add_argument("--segment", type=float, default=1.5, help="seconds of the clip to track")
     parser.add_argument("--envs", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--psi", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                        help="train on this jump-distance range instead of the paper's far_jump train range")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
 
     import torch
@@ -62,15 +97,18 @@ def main() -> None:
     from pipeline.rl.trainer import train_stage1
 
     t0 = time.time()
-    data, keyframes, (start, stop, total) = build_data(args.segment)
+    data, keyframes, (start, stop, total) = build_data(args.segment, psi_range=args.psi)
     print(f"[learn_cpu] far_jump frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
-    raw = {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": 100000, "save_interval": 50}
+    overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": 100000,
+                                      "save_interval": 50}}
     if args.envs:
-        raw["ppo"] = {"num_envs": args.envs}
-    cfg = TrainConfig.from_dict(raw)
-    env_cfg = EnvConfig()
+        overrides["train"]["ppo"] = {"num_envs": args.envs}
+    for item in args.set:
+        set_dotted(overrides, item)
+    cfg = TrainConfig.from_dict(overrides["train"])
+    env_cfg = EnvConfig.from_dict(overrides["env"])
     out = args.out or Path(tempfile.mkdtemp(prefix="learn_cpu_"))
     torch.set_num_threads(2)
     t1 = time.time()
@@ -99,8 +137,13 @@ def main() -> None:
             cells.append(fmt.format(value) if not (isinstance(value, float) and value != value) else "nan".rjust(len(name)))
         print("  ".join(c.rjust(len(n)) for c, (n, _, _) in zip(cells, cols)))
     print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
-    success = metrics.get("success_rate") or 0.0
-    print(f"success={success:.3f} minutes={minutes:.1f}")
+    train_success = metrics.get("success_rate") or 0.0
+    ev = evaluate_from_start(out / "policy", data, env_cfg)
+    print(f"[learn_cpu] training episodes (stochastic policy, randomised, half from a random keyframe): "
+          f"success {train_success:.3f}")
+    print(f"[learn_cpu] evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes): "
+          f"success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, E_l-bpe {ev['e_l_bpe']:.0f} mm")
+    print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,11 @@ Mapping to MuJoCo fields (why each is what it is):
       same ratio so each link keeps its radius of gyration;
   base CoM offset U(−0.1,0.1) m per axis → body_ipos of the base body;
   friction U(0.1,1.1) → sliding friction of the robot's collision geoms (the feet have contact
-      priority, so theirs is the one MuJoCo uses against the ground);
+      priority, so theirs is the one MuJoCo uses against the ground). The paper's ranges were
+      tuned in Isaac Gym, whose PhysX contacts average the two materials' friction: against its
+      ground of friction 1 a sample of 0.1 gives a contact of 0.55. With `friction_combine:
+      average` (default) the feet get (sample + ground)/2 so the contact sees what it saw there;
+      `robot` uses the sample itself (0.1: no far jump can push off that floor);
   restitution e ∈ U(0,0.1) → the feet's contact damping ratio ζ = −ln e / sqrt(π² + ln² e)
       (a damped-spring contact bounces back with e = exp(−ζπ/sqrt(1−ζ²))), ζ = 1 at e = 0;
   P gain ×U, D gain ×U, motor strength ×U → actuator_gainprm[0] = s·p·Kp, biasprm[1] = −s·p·Kp,
@@ -45,6 +49,8 @@ class DomainRandomizer:
         world_body = model.geom_bodyid == 0
         self.robot_geoms = np.flatnonzero(~world_body)
         self.feet_geoms = np.flatnonzero((model.geom_priority > 0) & ~world_body)
+        ground = [g for g in np.flatnonzero(world_body) if model.geom(g).name == "ground"]
+        self.ground_friction = float(model.geom_friction[ground[0], 0]) if ground else 1.0
         self.links = np.array([b for b in range(1, model.nbody) if b != self.trunk])
 
     def _on(self, r: Range) -> bool:
@@ -85,7 +91,10 @@ class DomainRandomizer:
             self._write("body_ipos", world_ids, ipos)
         if self._on(c.friction):
             friction = tile("geom_friction")
-            friction[:, self.robot_geoms, 0] = self._u(c.friction, n)[:, None]
+            sample = self._u(c.friction, n)
+            if c.friction_combine == "average":
+                sample = 0.5 * (sample + self.ground_friction)
+            friction[:, self.robot_geoms, 0] = sample[:, None]
             self._write("geom_friction", world_ids, friction)
         if self._on(c.restitution):
             solref = tile("geom_solref")

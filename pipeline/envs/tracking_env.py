@@ -77,6 +77,10 @@ class TrackingEnv:
 
         self.termination_threshold = float(cfg.terminations.keyframe_error.start)
         self.penalty_scale = 1.0  # the paper's weights until a trainer's curriculum says otherwise
+        self.penalty_curriculum_started = False
+        # episodes finished / ended in a fall since the last curriculum update (the penalty curriculum's input)
+        self.episodes_finished = 0
+        self.episodes_terminated = 0
         self._alloc_state()
 
     # ------------------------------------------------------------------------------------ set-up
@@ -268,8 +272,9 @@ class TrackingEnv:
         return self.termination_threshold
 
     def update_curriculum(self, progress: float) -> float:
-        """Sets the keyframe-error termination threshold (returned) and the dense penalty scale
-        (`penalty_scale`, see `PenaltyCurriculum`) from training progress p ∈ [0, 1]."""
+        """Called once per training iteration. Sets the keyframe-error termination threshold
+        (returned) from training progress p ∈ [0, 1], and the dense penalty scale (`penalty_scale`)
+        from the share of episodes that fell since the last call (see `PenaltyCurriculum`)."""
         c = self.cfg.terminations.keyframe_error
         p = min(max(float(progress), 0.0), 1.0)
         if p <= c.tighten_until:
@@ -280,8 +285,16 @@ class TrackingEnv:
             value = c.min + (c.max - c.min) * ((p - c.relax_from) / max(1.0 - c.relax_from, _EPS))
         pc = self.cfg.rewards.penalty_curriculum
         if pc.enabled:
-            ramp = min(p / pc.full_at, 1.0) if pc.full_at > 0 else 1.0
-            self.penalty_scale = pc.initial + (1.0 - pc.initial) * ramp
+            if not self.penalty_curriculum_started:
+                self.penalty_scale, self.penalty_curriculum_started = pc.initial, True
+            elif self.episodes_finished > 0:
+                fall_rate = self.episodes_terminated / self.episodes_finished
+                if fall_rate > pc.fall_rate_high:
+                    self.penalty_scale *= 1.0 - pc.rate
+                elif fall_rate < pc.fall_rate_low:
+                    self.penalty_scale *= 1.0 + pc.rate
+                self.penalty_scale = min(max(self.penalty_scale, pc.initial), 1.0)
+        self.episodes_finished = self.episodes_terminated = 0
         return self.set_termination_threshold(value)
 
     def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
@@ -411,6 +424,8 @@ class TrackingEnv:
             "terminated_by": {"keyframe_error": by_keyframe, "tilt": by_tilt, "base_height": by_height},
         }
         done = terminated | truncated
+        self.episodes_finished += int(done.sum())
+        self.episodes_terminated += int(terminated.sum())
         if bool(done.any()):
             self._reset_worlds(done.nonzero().squeeze(-1))
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
@@ -446,6 +461,7 @@ class TrackingEnv:
             "target_ptr": int(self.target_ptr),
             "termination_threshold": float(self.termination_threshold),
             "penalty_scale": float(self.penalty_scale),
+            "penalty_curriculum": [self.penalty_curriculum_started, self.episodes_finished, self.episodes_terminated],
             "randomizer_rng": self.randomizer.rng.bit_generator.state,
         }
 
@@ -468,6 +484,8 @@ class TrackingEnv:
         self.target_ptr = int(state["target_ptr"])
         self.termination_threshold = float(state["termination_threshold"])
         self.penalty_scale = float(state["penalty_scale"])
+        started, self.episodes_finished, self.episodes_terminated = state["penalty_curriculum"]
+        self.penalty_curriculum_started = bool(started)
         self.randomizer.rng.bit_generator.state = state["randomizer_rng"]
         self.backend.set_state(ids, state["qpos"].numpy(), state["qvel"].numpy())
 

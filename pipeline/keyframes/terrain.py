@@ -104,7 +104,7 @@ def _resolved(task) -> tuple[dict, str]:
 def _segments(terrain: dict, psi: float, src: str) -> list[tuple[float, float, float]]:
     """(lo, hi, top) of each box along the axis for ψ."""
     a = terrain.get("anchors") or {}
-    margin = float(terrain.get("margin", 0.05))
+    margin = float(terrain.get("margin", TerrainConfig.margin))
     if "psi_raw" not in a:
         raise PipelineInputError(src, "terrain.anchors", f"{terrain['kind']} terrain has no anchors yet: build it "
                                  "from TrackingData.terrain (build_tracking_data) or declare terrain.anchors")
