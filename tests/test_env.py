@@ -328,8 +328,26 @@ def test_penalty_scale_scales_only_the_penalties(data):
         assert (negative < -0.5).all()  # the action-rate jump from rest is a real penalty
 
 
+def test_reset_state_init_from_stance_frames(data):
+    jump = TrackingData(**{**data.__dict__, "keyframe_labels": ("takeoff", "apex", "landing")})
+    env = TrackingEnv(quiet_cfg(rsi_prob=1.0), jump, num_envs=64)
+    # every frame but the flight strictly between the takeoff (10) and the landing (40), and the last
+    expected = [f for f in range(FRAMES - 1) if not 10 < f < 40]
+    assert env.rsi_frame_table.tolist() == expected
+    torch.manual_seed(0)
+    env.reset()
+    frames = env.frame.numpy()
+    assert set(frames.tolist()) <= set(expected) and len(set(frames.tolist())) > 10
+    assert np.array_equal(env.next_kf.numpy(), np.searchsorted(KEYFRAMES, frames, side="right"))
+    k = np.searchsorted(KEYFRAMES, frames, side="right") - 1  # latest keyframe at or before the start
+    offsets = np.where((k >= 0)[:, None], data.keyframe_offsets[env.sample.numpy(), np.maximum(k, 0)], 0.0)
+    assert np.allclose(env.backend.qpos[:, :3].numpy(), data.motion.root_pos[frames] + offsets, atol=1e-5)
+    plain = TrackingEnv(quiet_cfg(rsi_prob=1.0), data, num_envs=4)  # no flight: any frame but the last
+    assert plain.rsi_frame_table.tolist() == list(range(FRAMES - 1))
+
+
 def test_reset_state_init_from_keyframes(data):
-    env = TrackingEnv(quiet_cfg(rsi_prob=1.0), data, num_envs=16)
+    env = TrackingEnv(quiet_cfg(rsi_prob=1.0, rsi_frames="keyframes"), data, num_envs=16)
     torch.manual_seed(3)
     env.reset()
     frames = env.frame.numpy()

@@ -75,3 +75,17 @@ def test_real_env_smoke_and_bad_range():
     data.psi_ranges = {"easy": [(5.0, 6.0)], "hard": [(1.5, 2.0)]}
     with pytest.raises(PipelineInputError, match="psi.easy"):
         evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
+
+
+def test_policy_runner_samples_when_not_deterministic():
+    from pipeline.rl.networks import Stage1Policy
+
+    module = Stage1Policy(460, 27, [32], phase_rate=0.03)
+    obs = torch.randn(4, 460)
+    mean_runner, sampling_runner = PolicyRunner(module), PolicyRunner(module, deterministic=False)
+    assert torch.equal(mean_runner(obs)[0], mean_runner(obs)[0])
+    first, second = sampling_runner(obs)[0], sampling_runner(obs)[0]
+    assert not torch.equal(first, second)
+    assert (first - mean_runner(obs)[0]).std() == pytest.approx(1.0, rel=0.2)  # init std exp(0)
+    with pytest.raises(PipelineInputError, match="deterministic"):
+        PolicyRunner(torch.nn.Linear(460, 27), deterministic=False)

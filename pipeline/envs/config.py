@@ -176,7 +176,14 @@ class EnvConfig:
     terminations: TerminationConfig = field(default_factory=TerminationConfig)
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
     variant: VariantConfig = field(default_factory=VariantConfig)
-    rsi_prob: float = 0.5  # probability of starting at a random keyframe instead of t = 0
+    rsi_prob: float = 0.5  # probability of a reference-state start instead of t = 0
+    # Where those starts are drawn: "stance" — any frame outside the flights (between a takeoff and the
+    # next landing keyframe), as DeepMimic's uniform-phase RSI; "keyframes" — keyframe frames only.
+    # Why stance: with keyframe starts alone nothing started inside a push-off (the far jump has no
+    # keyframe between its crouch and its takeoff), and policies learnt to stand up and hop instead
+    # of jumping. Flights are left out because an edited landing may be out of reach from a state of
+    # the unedited flight.
+    rsi_frames: str = "stance"
     action_clip: float = 100.0
     physics_threads: int = 2
     torch_threads: int = 1  # 0: leave torch's setting alone; small per-step ops prefer 1 beside physics
@@ -202,6 +209,8 @@ class EnvConfig:
             bad("observations.odometry_noise_std", "must be >= 0")
         if not 0.0 <= self.rsi_prob <= 1.0:
             bad("rsi_prob", "must be in [0, 1]")
+        if self.rsi_frames not in ("stance", "keyframes"):
+            bad("rsi_frames", f"must be 'stance' or 'keyframes', got {self.rsi_frames!r}")
         if self.variant.tracking not in ("sparse", "dense"):
             bad("variant.tracking", f"must be 'sparse' or 'dense', got {self.variant.tracking!r}")
         for name, value in dataclasses.asdict(self.rewards.sigma2).items():

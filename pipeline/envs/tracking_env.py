@@ -149,6 +149,21 @@ class TrackingEnv:
         self.kf_scale = self._tensor(d.sparse_scale)
         self.kf_target_pos = self._tensor(m.body_pos[kf][None] + np.asarray(d.keyframe_offsets)[:, :, None])  # (S,K,B,3)
         self.kf_target_quat = self._tensor(m.body_quat[kf])  # (K,B,4): edits only translate
+        self.rsi_frame_table = torch.as_tensor(self._rsi_frames(kf, d.keyframe_labels, t), device=self.device)
+
+    def _rsi_frames(self, kf: np.ndarray, labels, num_frames: int) -> np.ndarray:
+        """Frames a reference-state start may use (`EnvConfig.rsi_frames`); never the last frame,
+        which would time out at once."""
+        if self.cfg.rsi_frames == "keyframes":
+            return kf[kf < num_frames - 1]
+        allowed = np.ones(num_frames - 1, dtype=bool)
+        labels = list(labels) if labels is not None else [""] * kf.size
+        for i, label in enumerate(labels):
+            if not str(label).startswith("takeoff"):
+                continue
+            landing = next((kf[j] for j in range(i + 1, kf.size) if str(labels[j]).startswith("landing")), num_frames)
+            allowed[kf[i] + 1 : landing] = False  # in the air: from the takeoff (kept) to the landing (kept)
+        return np.flatnonzero(allowed)
 
     def _precompute_robot(self) -> None:
         cfg, rc = self.cfg.rewards, self.robot
@@ -564,12 +579,10 @@ class TrackingEnv:
         n, dev = ids.numel(), self.device
         sample = torch.randint(self.data.num_samples, (n,), device=dev)
         frame = torch.zeros(n, dtype=torch.long, device=dev)
-        if self.num_keyframes > 0 and self.cfg.rsi_prob > 0:
+        if self.cfg.rsi_prob > 0 and self.rsi_frame_table.numel() > 0:
             rsi = torch.rand(n, device=dev) < self.cfg.rsi_prob
-            k = torch.randint(self.num_keyframes, (n,), device=dev)
-            # the last frame would time out at once: RSI only from keyframes before it
-            rsi &= self.kf_frames[k] < self.num_frames - 1
-            frame = torch.where(rsi, self.kf_frames[k], frame)
+            pick = self.rsi_frame_table[torch.randint(self.rsi_frame_table.numel(), (n,), device=dev)]
+            frame = torch.where(rsi, pick, frame)
         qpos = torch.cat([self.ref_root_pos[frame] + self.offset_table[sample, frame], self.ref_root_quat[frame],
                           self.ref_joint_pos[frame]], dim=-1)
         qvel = self.ref_qvel[frame].clone()

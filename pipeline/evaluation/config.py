@@ -28,7 +28,6 @@ class EvalConfig:
     success_threshold_m: float = 1.0
     ranges: tuple[str, ...] = ("easy", "hard")
     psi_grid_points: int = 9  # plots vs ψ: uniform grid over the union of the ranges
-    episodes_per_psi: int = 4
     adapter_psi_points: int = 4  # ψ values in the adapters' behaviour figure
     domain_randomization: bool = False
     deterministic: bool = True
@@ -51,7 +50,7 @@ class EvalConfig:
     def validate(self, where: str = "evaluate") -> None:
         positive = {
             "episodes_per_range": self.episodes_per_range, "runs": self.runs, "num_envs": self.num_envs,
-            "psi_grid_points": self.psi_grid_points, "episodes_per_psi": self.episodes_per_psi,
+            "psi_grid_points": self.psi_grid_points,
             "adapter_psi_points": self.adapter_psi_points, "video.width": self.video.width,
             "video.height": self.video.height, "video.fps": self.video.fps,
         }

@@ -69,17 +69,24 @@ class PolicyRunner:
 
     The module returns the joint action or (action, Δφ^Δ). When it has a stage-1 `base`, the
     adapter's contribution is the applied action minus the base action (its L2 norm is recorded
-    for the adapters' figure)."""
+    for the adapters' figure). `deterministic=False` samples from the policy's Gaussian instead of
+    taking its mean (a training policy's `sample` + `to_env`), as a robustness check."""
 
-    def __init__(self, module: torch.nn.Module, device: str = "cpu"):
+    def __init__(self, module: torch.nn.Module, device: str = "cpu", deterministic: bool = True):
         self.module = module.eval().to(device)
         self.device = device
         self.base = getattr(module, "base", None)
+        self.deterministic = deterministic
+        if not deterministic and not (hasattr(module, "sample") and hasattr(module, "to_env")):
+            raise PipelineInputError("evaluate", "deterministic", "false needs a policy with sample() and to_env()")
 
     @torch.no_grad()
     def __call__(self, obs: torch.Tensor):
         obs = obs.to(self.device)
-        out = self.module(obs)
+        if self.deterministic:
+            out = self.module(obs)
+        else:
+            out = self.module.to_env(obs, self.module.sample(obs)[0])
         action, dphi = (out[0], out[1]) if isinstance(out, (tuple, list)) else (out, None)
         if dphi is not None:
             dphi = dphi.reshape(-1)

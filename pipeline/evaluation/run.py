@@ -55,7 +55,7 @@ def _expectations(env_cfg) -> dict:
 def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalConfig, policy_dir: str | Path,
                      out_dir: str | Path, videos: bool = True) -> dict:
     module, meta = load_checked_policy(policy_dir, task, _expectations(env_cfg))
-    policy = PolicyRunner(module, eval_cfg.device)
+    policy = PolicyRunner(module, eval_cfg.device, eval_cfg.deterministic)
     make_env = default_env_factory(env_cfg, eval_cfg)
     result = evaluate_policy(policy, data, eval_cfg, make_env)
     doc = metrics_document(task, variant, result.runs, result.psi_ranges,
