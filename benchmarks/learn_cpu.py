@@ -24,7 +24,8 @@ sys.path.insert(0, str(ROOT))
 CLIP = ROOT.parent / "shared" / "data" / "adamimic_smpl" / "far_jump.npz"
 
 
-def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None):
+def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None,
+               keyframe_spacing: float | None = None):
     from pipeline.human.importers import load_human_motion
     from pipeline.keyframes.config import load_tasks, load_yaml_strict
     from pipeline.keyframes.edit import build_tracking_data
@@ -35,6 +36,9 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
     task = tasks["far_jump"]
     if psi_range is not None:
         task = dataclasses.replace(task, psi=dataclasses.replace(task.psi, train=(tuple(psi_range),)))
+    if keyframe_spacing is not None:
+        spacing = dataclasses.replace(task.keyframes, spacing=keyframe_spacing, min_gap=min(task.keyframes.min_gap, keyframe_spacing / 2))
+        task = dataclasses.replace(task, keyframes=spacing)
     human = load_human_motion(CLIP)
     motion, _ = retarget(human, RetargetConfig(), fps_out=50, progress=False)
     full = select_keyframes(motion, task)
@@ -86,6 +90,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--psi", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
                         help="train on this jump-distance range instead of the paper's far_jump train range")
+    parser.add_argument("--keyframe-spacing", type=float, default=None,
+                        help="seconds between uniform keyframes (default: the task's, 0.3)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
@@ -97,7 +103,7 @@ def main() -> None:
     from pipeline.rl.trainer import train_stage1
 
     t0 = time.time()
-    data, keyframes, (start, stop, total) = build_data(args.segment, psi_range=args.psi)
+    data, keyframes, (start, stop, total) = build_data(args.segment, psi_range=args.psi, keyframe_spacing=args.keyframe_spacing)
     print(f"[learn_cpu] far_jump frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
