@@ -1,12 +1,15 @@
 """Does stage 1 learn on 2 CPU cores? Goal: >= 90 % success within 20 minutes.
 
 Imports ../shared/data/adamimic_smpl/far_jump.npz, retargets it to the G1, cuts about 1.5 s around
-the jump (from a little before take-off to after landing), selects keyframes, builds D_edit and
-trains stage 1 (variant adamimic, cpu profile) against the real TrackingEnv until the time budget.
-Success is the trainer's: the share of finished training episodes with no termination and a mean
-body error <= 1 m at every keyframe. Prints the curve and ends with `success=<s> minutes=<m>`.
+the jump (from 0.5 s before take-off to after landing), selects keyframes, builds D_edit and trains
+stage 1 (variant adamimic_stage1, cpu profile) against the real TrackingEnv until the time budget.
+Prints the training curve, where success is the trainer's (stochastic policy, randomised worlds,
+half the episodes from a reference state): no termination and a mean body error <= 1 m at every
+keyframe. Then evaluates the final policy as the evaluate stage does (deterministic, from t = 0 over
+the whole segment, no randomisation) and ends with that success: `success=<s> minutes=<m>`.
 
     .venv/bin/python benchmarks/learn_cpu.py [--minutes 20] [--segment 1.5] [--envs 192] [--out DIR]
+        [--psi LOW HIGH] [--keyframe-spacing S] [--set env.KEY=VALUE | train.KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -145,7 +148,7 @@ def main() -> None:
     print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
     train_success = metrics.get("success_rate") or 0.0
     ev = evaluate_from_start(out / "policy", data, env_cfg)
-    print(f"[learn_cpu] training episodes (stochastic policy, randomised, half from a random keyframe): "
+    print(f"[learn_cpu] training episodes (stochastic policy, randomised, half from a reference state): "
           f"success {train_success:.3f}")
     print(f"[learn_cpu] evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes): "
           f"success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, E_l-bpe {ev['e_l_bpe']:.0f} mm")

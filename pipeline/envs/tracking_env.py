@@ -110,7 +110,7 @@ class TrackingEnv:
             raise PipelineInputError(source, "motion.fps", f"must be the control rate {1 / self.robot.control_dt:g}, got {m.fps}")
 
     def _tensor(self, x, dtype=torch.float32):
-        return torch.as_tensor(np.asarray(x), dtype=dtype, device=self.device)
+        return torch.as_tensor(np.array(x), dtype=dtype, device=self.device)  # a copy: dataset arrays are read-only
 
     def _precompute_reference(self) -> None:
         d, m = self.data, self.data.motion
