@@ -60,8 +60,8 @@ class PenaltyCurriculum:
     a policy that still fell in 70 % of its episodes and drove the dense return to -80.
     Training starts at `initial`; at each curriculum update (one per PPO iteration) the scale shrinks
     by the factor (1 - `rate`) when more than `fall_rate_high` of the episodes finished since the
-    last update ended in a fall, and grows by (1 + `rate`) when fewer than `fall_rate_low` did,
-    within [`initial`, 1]. Outside training (no curriculum call) the scale is 1: the paper's weights."""
+    last update were terminated (a fall or a lost keyframe), and grows by (1 + `rate`) when fewer
+    than `fall_rate_low` were, within [`initial`, 1]. Outside training (no curriculum call) the scale is 1: the paper's weights."""
 
     enabled: bool = True
     initial: float = 0.1

@@ -78,9 +78,9 @@ class TrackingEnv:
         self.termination_threshold = float(cfg.terminations.keyframe_error.start)
         self.penalty_scale = 1.0  # the paper's weights until a trainer's curriculum says otherwise
         self.penalty_curriculum_started = False
-        # episodes finished / ended in a fall since the last curriculum update (the penalty curriculum's input)
-        self.episodes_finished = 0
-        self.episodes_terminated = 0
+        # episodes finished / terminated since the last curriculum update (the penalty curriculum's input),
+        # kept as device tensors so counting them costs no host sync per step
+        self._clear_episode_counts()
         self._alloc_state()
 
     # ------------------------------------------------------------------------------------ set-up
@@ -302,15 +302,19 @@ class TrackingEnv:
         if pc.enabled:
             if not self.penalty_curriculum_started:
                 self.penalty_scale, self.penalty_curriculum_started = pc.initial, True
-            elif self.episodes_finished > 0:
-                fall_rate = self.episodes_terminated / self.episodes_finished
+            elif int(self.episodes_finished) > 0:
+                fall_rate = int(self.episodes_terminated) / int(self.episodes_finished)
                 if fall_rate > pc.fall_rate_high:
                     self.penalty_scale *= 1.0 - pc.rate
                 elif fall_rate < pc.fall_rate_low:
                     self.penalty_scale *= 1.0 + pc.rate
                 self.penalty_scale = min(max(self.penalty_scale, pc.initial), 1.0)
-        self.episodes_finished = self.episodes_terminated = 0
+        self._clear_episode_counts()
         return self.set_termination_threshold(value)
+
+    def _clear_episode_counts(self) -> None:
+        self.episodes_finished = torch.zeros((), dtype=torch.long, device=self.device)
+        self.episodes_terminated = torch.zeros((), dtype=torch.long, device=self.device)
 
     def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
         """One control step of every world; see the module docstring and docs/INTERFACES.md."""
@@ -439,8 +443,8 @@ class TrackingEnv:
             "terminated_by": {"keyframe_error": by_keyframe, "tilt": by_tilt, "base_height": by_height},
         }
         done = terminated | truncated
-        self.episodes_finished += int(done.sum())
-        self.episodes_terminated += int(terminated.sum())
+        self.episodes_finished = self.episodes_finished + done.sum()
+        self.episodes_terminated = self.episodes_terminated + terminated.sum()
         if bool(done.any()):
             self._reset_worlds(done.nonzero().squeeze(-1))
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
@@ -476,7 +480,8 @@ class TrackingEnv:
             "target_ptr": int(self.target_ptr),
             "termination_threshold": float(self.termination_threshold),
             "penalty_scale": float(self.penalty_scale),
-            "penalty_curriculum": [self.penalty_curriculum_started, self.episodes_finished, self.episodes_terminated],
+            "penalty_curriculum": [self.penalty_curriculum_started, int(self.episodes_finished),
+                                   int(self.episodes_terminated)],
             "randomizer_rng": self.randomizer.rng.bit_generator.state,
         }
 
@@ -499,8 +504,11 @@ class TrackingEnv:
         self.target_ptr = int(state["target_ptr"])
         self.termination_threshold = float(state["termination_threshold"])
         self.penalty_scale = float(state["penalty_scale"])
-        started, self.episodes_finished, self.episodes_terminated = state["penalty_curriculum"]
+        started, finished, terminated = state["penalty_curriculum"]
         self.penalty_curriculum_started = bool(started)
+        self._clear_episode_counts()
+        self.episodes_finished += int(finished)
+        self.episodes_terminated += int(terminated)
         self.randomizer.rng.bit_generator.state = state["randomizer_rng"]
         self.backend.set_state(ids, state["qpos"].numpy(), state["qvel"].numpy())
 
