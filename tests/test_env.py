@@ -435,6 +435,26 @@ def test_control_delay_feeds_old_targets(data):
     assert torch.allclose(ctrl[:, :2], env.ref_joint_pos[0].expand(2, 2, -1))
 
 
+def test_action_offset_default_or_reference(data, monkeypatch):
+    """Joint targets = offset + scale·a: the default pose, or the reference's joints at the frame the
+    step ends on (after the adaptive phase), so a zero action replays the reference's joints."""
+    targets = []
+    for offset in ("default", "reference"):
+        env = TrackingEnv(quiet_cfg(action_offset=offset), data, num_envs=2)
+        env.reset()
+        sent = []
+        delayed = env._delayed_control
+        monkeypatch.setattr(env, "_delayed_control", lambda t, sent=sent, delayed=delayed: sent.append(t.clone()) or delayed(t))
+        action = torch.full((2, env.action_dim), 0.1)
+        for _ in range(3):
+            env.step(action, phase_rate_offset=torch.tensor([0.0, env.dphi]))  # world 1 runs at twice the rate
+        targets.append(sent[-1])
+        assert env.frame.tolist() == [3, 6]
+    assert torch.allclose(targets[0], (env.default_joint_pos + env.action_scale * 0.1).expand(2, -1))
+    assert torch.allclose(targets[1], env.ref_joint_pos[torch.tensor([3, 6])] + env.action_scale * 0.1)
+    assert not torch.allclose(targets[1][0], targets[1][1])  # the elbow waves: frames 3 and 6 differ
+
+
 def test_bad_input(data, monkeypatch):
     with pytest.raises(PipelineInputError, match="num_envs"):
         TrackingEnv(EnvConfig(), data, num_envs=0)

@@ -39,6 +39,7 @@ def test_partial_override_and_errors_name_the_key():
         ({"rewards": {"weights": {"torque": 1}}}, "env.rewards.weights.torque"),
         ({"observations": {"history": 2.5}}, "env.observations.history"),
         ({"rsi_prob": 1.5}, "rsi_prob"),
+        ({"action_offset": "pose"}, "action_offset"),
         ({"variant": {"tracking": "both"}}, "variant.tracking"),
         ({"randomization": {"friction": {"low": 2.0, "high": 1.0}}}, "randomization.friction"),
         ({"randomization": {"push": {"enabled": "yes"}}}, "env.randomization.push.enabled"),

@@ -35,13 +35,15 @@ class ComposedStandIn(nn.Module):
         return a + dphi[:, None] * a, dphi
 
 
-def _tracking_data(task="far_jump", frames=40):
+def _tracking_data(task="far_jump", frames=40, wave=0.0):
     cfg = load_robot_config()
     kin = RobotKinematics()
     q = default_qpos(cfg)
     root = np.tile(q[:3], (frames, 1))
     root[:, 0] = np.linspace(0, 0.3, frames)
-    motion = kin.motion(50.0, root, np.tile(q[3:7], (frames, 1)), np.tile(q[7:], (frames, 1)))
+    joints = np.tile(q[7:], (frames, 1))
+    joints += wave * np.sin(np.linspace(0, 2 * np.pi, frames))[:, None]  # every joint, so frames differ
+    motion = kin.motion(50.0, root, np.tile(q[3:7], (frames, 1)), joints)
     psi = np.linspace(1.0, 2.0, 11)
     offsets = np.zeros((11, 2, 3))
     offsets[:, 1, 0] = psi - 1.0
@@ -150,6 +152,38 @@ def test_export_variant_from_a_real_policy_folder(tmp_path):
     with pytest.raises(PipelineInputError, match="not found"):
         export_variant(task="far_jump", variant="adamimic", data=data, policy_dir=tmp_path / "missing",
                        out_dir=tmp_path / "export3")
+
+
+def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypatch):
+    """A policy trained with `env.action_offset: reference`: the exported graph adds the reference's
+    joints at the frame the env's step ends on (adaptive phase included) — same targets as the env."""
+    from pipeline.envs.config import EnvConfig
+    from pipeline.envs.tracking_env import TrackingEnv
+    from pipeline.export.onnx_export import OUTPUT_NAMES, ReferenceOffset, onnx_session
+
+    torch.manual_seed(2)
+    cfg = load_robot_config()
+    data = _tracking_data(wave=0.2)
+    env = TrackingEnv(EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0,
+                                           "action_offset": "reference"}), data, num_envs=4)
+    layout = observation_layout(cfg, history=5)
+    assert layout["dim"] == env.actor_obs_dim
+    reference = ReferenceOffset.for_layout(data.motion.joint_pos, env.dphi, layout)
+    module = DeployedPolicy(ComposedStandIn(layout["dim"], phase_rate=env.dphi), cfg.default_joint_pos,
+                            cfg.action_scale, reference=reference)
+    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=data, obs_layout=layout)
+    result = export_folder(module, layout["dim"], meta, tmp_path / "export")
+    session = onnx_session(result.onnx)
+    sent = []
+    delayed = env._delayed_control
+    monkeypatch.setattr(env, "_delayed_control", lambda t: sent.append(t.clone()) or delayed(t))
+    obs = env.reset()
+    for _ in range(12):
+        raw = obs["actor"].numpy()
+        targets, action, dphi = session.run(list(OUTPUT_NAMES), {"obs": raw})
+        obs, *_ = env.step(torch.from_numpy(action), torch.from_numpy(dphi[:, 0]))
+        np.testing.assert_allclose(targets, sent[-1].numpy(), atol=1e-5)
+    assert np.ptp(env.frame.numpy()) > 0  # the adaptive phase moved the worlds to different frames
 
 
 # ------------------------------------------------------------------------------ fall checks

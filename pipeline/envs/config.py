@@ -184,6 +184,10 @@ class EnvConfig:
     # of jumping. Flights are left out because an edited landing may be out of reach from a state of
     # the unedited flight.
     rsi_frames: str = "stance"
+    # Joint targets = offset + action_scale · action. "default": the standing default pose, as the paper
+    # and BeyondMimic; "reference": the reference's joints at the frame the step ends on (the exported
+    # policy then needs the reference joints as an input).
+    action_offset: str = "default"
     action_clip: float = 100.0
     physics_threads: int = 2
     torch_threads: int = 1  # 0: leave torch's setting alone; small per-step ops prefer 1 beside physics
@@ -211,6 +215,8 @@ class EnvConfig:
             bad("rsi_prob", "must be in [0, 1]")
         if self.rsi_frames not in ("stance", "keyframes"):
             bad("rsi_frames", f"must be 'stance' or 'keyframes', got {self.rsi_frames!r}")
+        if self.action_offset not in ("default", "reference"):
+            bad("action_offset", f"must be 'default' or 'reference', got {self.action_offset!r}")
         if self.variant.tracking not in ("sparse", "dense"):
             bad("variant.tracking", f"must be 'sparse' or 'dense', got {self.variant.tracking!r}")
         for name, value in dataclasses.asdict(self.rewards.sigma2).items():

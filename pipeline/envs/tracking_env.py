@@ -316,6 +316,12 @@ class TrackingEnv:
         self.episodes_finished = torch.zeros((), dtype=torch.long, device=self.device)
         self.episodes_terminated = torch.zeros((), dtype=torch.long, device=self.device)
 
+    def _action_offset(self, frame: torch.Tensor) -> torch.Tensor:
+        """Joint targets at a zero action: the default pose, or the reference's joints at `frame`."""
+        if self.cfg.action_offset == "reference":
+            return self.ref_joint_pos[frame]
+        return self.default_joint_pos
+
     def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
         """One control step of every world; see the module docstring and docs/INTERFACES.md."""
         with self._torch_threads():
@@ -324,17 +330,8 @@ class TrackingEnv:
     def _step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None):
         cfg, w = self.cfg, self.cfg.rewards.weights
         action = action.to(self.device, torch.float32).clamp(-cfg.action_clip, cfg.action_clip)
-        target = self.default_joint_pos + self.action_scale * action
-        self._apply_pushes()
-        self.backend.step(self._delayed_control(target))
 
-        b = self.backend
-        qpos, qvel = b.qpos, b.qvel
-        root_pos, root_quat = qpos[:, 0:3], qpos[:, 3:7]
-        joint_pos, joint_vel = qpos[:, 7:], qvel[:, 6:]
-        site_pos, site_quat = b.site_pos, b.site_quat
-
-        # ---- phase
+        # ---- phase (first: the reference action offset aims at the frame this step ends on)
         dphi = self.dphi
         if phase_rate_offset is not None:
             off = phase_rate_offset.to(self.device, torch.float64).reshape(-1)
@@ -343,6 +340,16 @@ class TrackingEnv:
         self.phase = phase = prev_phase + dphi
         self.frame = frame = (phase * (self.num_frames - 1)).round().long().clamp_(0, self.num_frames - 1)
         self.episode_step += 1
+
+        target = self._action_offset(frame) + self.action_scale * action
+        self._apply_pushes()
+        self.backend.step(self._delayed_control(target))
+
+        b = self.backend
+        qpos, qvel = b.qpos, b.qvel
+        root_pos, root_quat = qpos[:, 0:3], qpos[:, 3:7]
+        joint_pos, joint_vel = qpos[:, 7:], qvel[:, 6:]
+        site_pos, site_quat = b.site_pos, b.site_quat
         crossed = phase >= self.kf_phase_padded[self.next_kf] - _EPS
         crossed_kf = torch.full_like(self.next_kf, -1)
 

@@ -49,7 +49,8 @@ def _expectations(env_cfg) -> dict:
 
     robot = load_robot_config()
     return {"robot": robot.name, "joint_names": list(robot.joint_names),
-            "actor_obs_dim": FRAME_OBS_DIM * env_cfg.observations.history}
+            "actor_obs_dim": FRAME_OBS_DIM * env_cfg.observations.history,
+            "action_offset": env_cfg.action_offset}
 
 
 def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalConfig, policy_dir: str | Path,

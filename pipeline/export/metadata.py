@@ -175,6 +175,7 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
         "tracked_body_names": list(motion.body_names),
         "tracked_site_names": list(robot.tracked_site_names),
         "observation": obs_layout,
+        "action_offset": "default",  # export sets "reference" for policies trained so
         "outputs": {"joint_targets": "default_joint_pos + action_scale * action",
                     "action": "raw action a (next step's last_action)",
                     "phase_rate_offset": "Δφ^Δ added to the phase rate, clamp [-0.75, +1]·phase_rate"},

@@ -36,15 +36,32 @@ class DeployedPolicy(nn.Module):
 
     `policy(obs)` returns the joint action a, or a tuple (a, Δφ^Δ) — the composed stage-2 module.
     `normalizer`, when given, maps raw observations to the policy's input (else the policy
-    normalises itself). Joint targets = default pose + action_scale · a.
+    normalises itself). Joint targets = offset + action_scale · a, where the offset is the default
+    pose, or — for a policy trained with `env.action_offset: reference` — the reference's joints at
+    the frame the step ends on: round(φ'·(T − 1)) with φ' = φ + rate + clamp(Δφ^Δ, −0.75·rate, rate)
+    and φ read from the newest step of the raw observation, exactly as the env steps.
     """
 
-    def __init__(self, policy: nn.Module, default_joint_pos, action_scale, normalizer: nn.Module | None = None):
+    def __init__(self, policy: nn.Module, default_joint_pos, action_scale, normalizer: nn.Module | None = None,
+                 reference: "ReferenceOffset | None" = None):
         super().__init__()
         self.policy = policy
         self.normalizer = normalizer
         self.register_buffer("default_joint_pos", torch.as_tensor(np.asarray(default_joint_pos), dtype=torch.float32))
         self.register_buffer("action_scale", torch.as_tensor(np.asarray(action_scale), dtype=torch.float32))
+        self.reference = reference
+        if reference is not None:
+            self.register_buffer("reference_joint_pos", torch.as_tensor(np.asarray(reference.joint_pos), dtype=torch.float32))
+
+    def _offset(self, obs: torch.Tensor, phase_rate_offset: torch.Tensor) -> torch.Tensor:
+        if self.reference is None:
+            return self.default_joint_pos
+        rate = self.reference.phase_rate
+        phase = obs[:, self.reference.phase_index: self.reference.phase_index + 1]
+        phase = phase + rate + phase_rate_offset.clamp(-0.75 * rate, rate)
+        last = self.reference_joint_pos.shape[0] - 1
+        frame = torch.round(phase * last).clamp(0, last).long().reshape(-1)
+        return self.reference_joint_pos[frame]
 
     def forward(self, obs: torch.Tensor):
         x = self.normalizer(obs) if self.normalizer is not None else obs
@@ -54,8 +71,29 @@ class DeployedPolicy(nn.Module):
         else:
             action, phase_rate_offset = out, torch.zeros_like(out[..., :1])
         phase_rate_offset = phase_rate_offset.reshape(action.shape[0], 1)
-        targets = self.default_joint_pos + self.action_scale * action
+        targets = self._offset(obs, phase_rate_offset) + self.action_scale * action
         return targets, action, phase_rate_offset
+
+
+@dataclass(frozen=True)
+class ReferenceOffset:
+    """What the graph needs to add the reference's joints to the action (see `DeployedPolicy`)."""
+
+    joint_pos: np.ndarray  # (T, J) reference joint positions, action order
+    phase_rate: float  # Δφ per control step
+    phase_index: int  # where the newest step's phase sits in the raw observation
+
+    @classmethod
+    def for_layout(cls, joint_pos, phase_rate: float, layout: dict) -> "ReferenceOffset":
+        start = 0
+        for term in layout["terms"]:
+            if term["name"] == "phase":
+                break
+            start += int(term["dim"])
+        else:
+            raise ValueError("the observation layout has no phase term")
+        newest = (int(layout["history"]) - 1) * int(layout["step_dim"])  # history is oldest first
+        return cls(np.asarray(joint_pos, dtype=np.float32), float(phase_rate), newest + start)
 
 
 def export_onnx(module: DeployedPolicy, obs_dim: int, path: str | Path, metadata: dict | None = None) -> Path:
@@ -174,5 +212,12 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
     metadata = build_metadata(task=task, variant=variant, robot=robot, data=data, obs_layout=layout,
                               terminations=terminations, terrain=terrain)
     metadata["policy_stage"] = meta.get("stage")
-    module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale)
+    reference = None
+    if meta.get("action_offset", "default") == "reference":
+        reference = ReferenceOffset.for_layout(data.motion.joint_pos, metadata["phase"]["rate"], layout)
+        metadata["action_offset"] = "reference"
+        metadata["outputs"]["joint_targets"] = ("reference.joint_pos[frame_of_phase(phase + rate + clamp(phase_rate_offset))]"
+                                                " + action_scale * action")
+        metadata["reference"]["joint_pos"] = data.motion.joint_pos.tolist()  # (T, J), for reading; the graph has it
+    module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale, reference=reference)
     return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir)

@@ -364,17 +364,19 @@ def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, free
     if callable(layout):
         layout = layout()
     net = cfg.network
+    action_offset = getattr(getattr(env, "cfg", None), "action_offset", "default")
     return {
         "robot": robot.name, "task": getattr(data, "task", None), "variant": cfg.variant, "stage": stage,
         "joint_names": list(getattr(env, "joint_names", robot.joint_names)), "action_dim": int(env.action_dim),
         "actor_obs_dim": int(env.actor_obs_dim), "critic_obs_dim": int(env.critic_obs_dim),
         "obs_layout": json.loads(json.dumps(layout, default=lambda x: list(x))) if layout is not None else None,
         "phase_rate": phase_rate,
+        "action_offset": action_offset,
         "architecture": {"actor_hidden": net.actor_hidden, "critic_hidden": net.critic_hidden,
                          "adapter_hidden": net.adapter_hidden, "activation": net.activation,
                          "adaptive_phase": bool(cfg.variant_spec.adaptive_phase_stage1),
                          "freeze_base": freeze_base, "normalize_obs": cfg.ppo.normalize_obs},
-        "outputs": ["joint_action (scaled offset from the default pose)", "phase_rate_offset"],
+        "outputs": [f"joint_action (scaled offset from the {action_offset} joint positions)", "phase_rate_offset"],
         "train_config": cfg.to_dict(),
     }
 
