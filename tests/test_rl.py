@@ -312,6 +312,13 @@ def test_checkpoint_from_another_robot_or_layout_is_refused(tmp_path):
         load_policy(tmp_path / "p", {"robot": "toy", "obs_layout": {"pos": 2, "phase": 1, "psi": 1}})
     with pytest.raises(PipelineInputError, match="not a policy folder"):
         load_policy(tmp_path / "missing")
+    # A policy saved before `action_offset` existed was trained around the default pose.
+    load_policy(tmp_path / "p", {"robot": "toy", "action_offset": "default"})
+    with pytest.raises(PipelineInputError, match="action_offset"):
+        load_policy(tmp_path / "p", {"robot": "toy", "action_offset": "reference"})
+    save_policy(tmp_path / "r", policy, critic, META | {"action_offset": "reference"})
+    with pytest.raises(PipelineInputError, match="action_offset"):
+        load_policy(tmp_path / "r", {"robot": "toy", "action_offset": "default"})
 
 
 def test_stage2_without_stage1_checkpoint_is_refused(tmp_path):
