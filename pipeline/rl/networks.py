@@ -23,7 +23,8 @@ def mlp(in_dim: int, hidden: list[int], out_dim: int, activation: str = "elu", o
         layers += [nn.Linear(last, width), _ACT[activation]()]
         last = width
     head = nn.Linear(last, out_dim)
-    # A small last layer keeps initial actions near the default pose and values near zero.
+    # A small last layer keeps initial actions near zero (the action offset: reference or default pose)
+    # and values near zero.
     nn.init.orthogonal_(head.weight, gain=out_gain)
     nn.init.zeros_(head.bias)
     layers.append(head)
