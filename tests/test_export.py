@@ -171,7 +171,10 @@ def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypa
     reference = ReferenceOffset.for_layout(data.motion.joint_pos, env.dphi, layout)
     module = DeployedPolicy(ComposedStandIn(layout["dim"], phase_rate=env.dphi), cfg.default_joint_pos,
                             cfg.action_scale, reference=reference)
-    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=data, obs_layout=layout)
+    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=data, obs_layout=layout,
+                          action_offset="reference")
+    assert meta["action_offset"] == "reference" and meta["outputs"]["joint_targets"].startswith("reference.joint_pos")
+    assert np.allclose(meta["reference"]["joint_pos"], data.motion.joint_pos)
     result = export_folder(module, layout["dim"], meta, tmp_path / "export")
     session = onnx_session(result.onnx)
     sent = []

@@ -158,7 +158,10 @@ def terrain_metadata(terrain_builder: Callable | None, layout: Callable[[float],
 
 def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: TrackingData,
                    obs_layout: dict, terminations: dict | None = None,
-                   terrain: dict | None = None, psi_grid_points: int = PSI_GRID_POINTS) -> dict:
+                   terrain: dict | None = None, psi_grid_points: int = PSI_GRID_POINTS,
+                   action_offset: str = "default") -> dict:
+    """`action_offset`: what the policy's joint action is added to (`EnvConfig.action_offset`);
+    "reference" adds the reference's joints (`reference.joint_pos`) to the recorded formula."""
     motion = data.motion
     grid = _grid(data, psi_grid_points)
     frames = np.asarray(data.keyframe_frames, dtype=int)
@@ -166,6 +169,12 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
     phase_rate = robot.control_dt / duration
     start = motion.qpos()[0]
     qvel0 = motion.qvel()[0]
+    reference = reference_metadata(data, grid)
+    joint_targets = "default_joint_pos + action_scale * action"
+    if action_offset == "reference":
+        joint_targets = ("reference.joint_pos[frame_of_phase(phase + rate + clamp(phase_rate_offset))]"
+                         " + action_scale * action")
+        reference["joint_pos"] = motion.joint_pos.tolist()  # (T, J), for reading; the graph holds it
     return {
         "metadata_version": METADATA_VERSION,
         "task": task,
@@ -175,8 +184,8 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
         "tracked_body_names": list(motion.body_names),
         "tracked_site_names": list(robot.tracked_site_names),
         "observation": obs_layout,
-        "action_offset": "default",  # export sets "reference" for policies trained so
-        "outputs": {"joint_targets": "default_joint_pos + action_scale * action",
+        "action_offset": action_offset,
+        "outputs": {"joint_targets": joint_targets,
                     "action": "raw action a (next step's last_action)",
                     "phase_rate_offset": "Δφ^Δ added to the phase rate, clamp [-0.75, +1]·phase_rate"},
         "phase": {"duration_s": duration, "rate": phase_rate,
@@ -194,7 +203,7 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
         },
         "initial_state": {"qpos": start.tolist(), "qvel": qvel0.tolist()},
         "terminations": terminations or termination_metadata(task=task),
-        "reference": reference_metadata(data, grid),
+        "reference": reference,
         "success_threshold_m": 1.0,
         "terrain": terrain or {"geoms": [], "psi_grid": [], "layouts": []},
     }

@@ -210,14 +210,10 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
         terrain = terrain_metadata(terrain_builder(data.terrain), lambda p: terrain_layout(data.terrain, p), grid)
     terminations = termination_metadata(env_cfg.terminations if env_cfg is not None else None, task)
     metadata = build_metadata(task=task, variant=variant, robot=robot, data=data, obs_layout=layout,
-                              terminations=terminations, terrain=terrain)
+                              terminations=terminations, terrain=terrain, action_offset=meta["action_offset"])
     metadata["policy_stage"] = meta.get("stage")
     reference = None
-    if meta.get("action_offset", "default") == "reference":
+    if meta["action_offset"] == "reference":
         reference = ReferenceOffset.for_layout(data.motion.joint_pos, metadata["phase"]["rate"], layout)
-        metadata["action_offset"] = "reference"
-        metadata["outputs"]["joint_targets"] = ("reference.joint_pos[frame_of_phase(phase + rate + clamp(phase_rate_offset))]"
-                                                " + action_scale * action")
-        metadata["reference"]["joint_pos"] = data.motion.joint_pos.tolist()  # (T, J), for reading; the graph has it
     module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale, reference=reference)
     return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir)

@@ -81,6 +81,8 @@ def read_meta(path: str | Path) -> dict:
         raise PipelineInputError(cfg_file, None, f"invalid JSON: {err}") from None
     if meta.get("format") != FORMAT:
         raise PipelineInputError(cfg_file, "format", f"expected {FORMAT!r}, got {meta.get('format')!r}")
+    for key, value in _IMPLIED.items():
+        meta.setdefault(key, value)
     return meta
 
 
@@ -113,7 +115,7 @@ def check_compatible(meta: dict, expect: dict | None, source: str | Path) -> Non
         if expect is None or key not in expect or expect[key] is None:
             continue
         want = json.loads(json.dumps(expect[key], default=_json_default))
-        have = meta.get(key, _IMPLIED.get(key))
+        have = meta.get(key)
         if have != want:
             raise PipelineInputError(source, key, f"checkpoint has {_short(have)}, this run needs {_short(want)}")
 
