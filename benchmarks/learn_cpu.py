@@ -6,7 +6,8 @@ stage 1 (variant adamimic_stage1, cpu profile) against the real TrackingEnv unti
 Prints the training curve, where success is the trainer's (stochastic policy, randomised worlds,
 half the episodes from a reference state): no termination and a mean body error <= 1 m at every
 keyframe. Then evaluates the final policy as the evaluate stage does (deterministic, from t = 0 over
-the whole segment, no randomisation) and ends with that success: `success=<s> minutes=<m>`.
+the whole segment, no randomisation, 128 episodes), prints its success by ψ bin, and ends with that
+success: `success=<s> minutes=<m>`.
 
     .venv/bin/python benchmarks/learn_cpu.py [--minutes 20] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--set env.KEY=VALUE | train.KEY=VALUE ...]
@@ -57,9 +58,10 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
     return data, keyframes, (start, stop, motion.num_frames)
 
 
-def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 64) -> dict:
+def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 128) -> tuple[dict, list]:
     """The evaluate stage's metrics on the trained ψ range: deterministic policy, episodes from t = 0
-    over the whole segment, no randomisation, success = every keyframe within 1 m."""
+    over the whole segment, no randomisation, success = every keyframe within 1 m. Also returns the
+    per-episode (ψ, success) pairs."""
     from pipeline.evaluation.config import EvalConfig
     from pipeline.evaluation.evaluate import PolicyRunner, default_env_factory, evaluate_policy
     from pipeline.evaluation.metrics import aggregate
@@ -68,7 +70,23 @@ def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 64) -> 
     module, _ = load_policy(policy_dir)
     eval_cfg = EvalConfig(episodes_per_range=episodes, runs=1, num_envs=min(episodes, 32), ranges=("train",))
     result = evaluate_policy(PolicyRunner(module), data, eval_cfg, default_env_factory(env_cfg, eval_cfg))
-    return aggregate(result.runs[0]["train"])
+    episodes_ = result.runs[0]["train"]
+    return aggregate(episodes_), [(e.psi, e.success) for e in episodes_]
+
+
+def success_by_psi(pairs: list, bins: int = 6) -> str:
+    """`0.20-0.50 1.00 (n=21) | ...`: where in the ψ range the policy succeeds."""
+    import numpy as np
+
+    psi = np.array([p for p, _ in pairs])
+    ok = np.array([s for _, s in pairs], dtype=float)
+    edges = np.linspace(psi.min(), psi.max(), bins + 1)
+    cells = []
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        inside = (psi >= lo) & ((psi < hi) | (i == bins - 1))
+        if inside.any():
+            cells.append(f"{lo:.2f}-{hi:.2f} {ok[inside].mean():.2f} (n={int(inside.sum())})")
+    return " | ".join(cells)
 
 
 def set_dotted(tree: dict, item: str) -> None:
@@ -147,11 +165,12 @@ def main() -> None:
         print("  ".join(c.rjust(len(n)) for c, (n, _, _) in zip(cells, cols)))
     print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
     train_success = metrics.get("success_rate") or 0.0
-    ev = evaluate_from_start(out / "policy", data, env_cfg)
+    ev, pairs = evaluate_from_start(out / "policy", data, env_cfg)
     print(f"[learn_cpu] training episodes (stochastic policy, randomised, half from a reference state): "
           f"success {train_success:.3f}")
     print(f"[learn_cpu] evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes): "
           f"success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, E_l-bpe {ev['e_l_bpe']:.0f} mm")
+    print(f"[learn_cpu] success by ψ (m): {success_by_psi(pairs)}")
     print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
 
 

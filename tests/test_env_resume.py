@@ -16,8 +16,9 @@ N = 6
 
 
 def noisy_cfg() -> EnvConfig:
-    # everything random on; pushes often so a few steps see some
-    return EnvConfig.from_dict({"rsi_prob": 0.5, "randomization": {"push": {"interval_s": [0.04, 0.2]}}})
+    # everything random on; pushes often so a few steps see some; ψ drawn by failure rate (its own state)
+    return EnvConfig.from_dict({"rsi_prob": 0.5, "randomization": {"push": {"interval_s": [0.04, 0.2]}},
+                                "sampling": {"mode": "adaptive"}})
 
 
 def run(env, actions):

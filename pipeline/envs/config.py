@@ -170,12 +170,22 @@ class VariantConfig:
 
 
 @dataclass
+class SamplingConfig:
+    """How a reset picks the edited sample (ψ) to track (pipeline/envs/sampling.py)."""
+
+    mode: str = "uniform"  # "uniform" | "adaptive": in proportion to each sample's running failure rate
+    uniform_ratio: float = 0.2  # adaptive: share of draws that stay uniform
+    rate: float = 0.05  # adaptive: EMA step of a sample's failure rate per finished episode
+
+
+@dataclass
 class EnvConfig:
     rewards: RewardConfig = field(default_factory=RewardConfig)
     observations: ObservationConfig = field(default_factory=ObservationConfig)
     terminations: TerminationConfig = field(default_factory=TerminationConfig)
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
     variant: VariantConfig = field(default_factory=VariantConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
     rsi_prob: float = 0.5  # probability of a reference-state start instead of t = 0
     # Where those starts are drawn: "stance" — any frame outside the flights (between a takeoff and the
     # next landing keyframe), as DeepMimic's uniform-phase RSI; "keyframes" — keyframe frames only.
@@ -220,6 +230,12 @@ class EnvConfig:
             bad("rsi_frames", f"must be 'stance' or 'keyframes', got {self.rsi_frames!r}")
         if self.action_offset not in ("default", "reference"):
             bad("action_offset", f"must be 'default' or 'reference', got {self.action_offset!r}")
+        if self.sampling.mode not in ("uniform", "adaptive"):
+            bad("sampling.mode", f"must be 'uniform' or 'adaptive', got {self.sampling.mode!r}")
+        if not 0.0 <= self.sampling.uniform_ratio <= 1.0:
+            bad("sampling.uniform_ratio", "must be in [0, 1]")
+        if not 0.0 < self.sampling.rate <= 1.0:
+            bad("sampling.rate", "must be in (0, 1]")
         if self.variant.tracking not in ("sparse", "dense"):
             bad("variant.tracking", f"must be 'sparse' or 'dense', got {self.variant.tracking!r}")
         for name, value in dataclasses.asdict(self.rewards.sigma2).items():

@@ -23,6 +23,7 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.envs import rewards as R
 from pipeline.envs.config import EnvConfig
 from pipeline.envs.randomization import DomainRandomizer
+from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.torch_math import (
     projected_gravity,
     quat_conjugate,
@@ -69,6 +70,7 @@ class TrackingEnv:
         self._precompute_reference()
         self._precompute_robot()
         self.randomizer = DomainRandomizer(cfg.randomization, self.model, self.backend)
+        self.sampler = SampleSampler(cfg.sampling, data.num_samples, self.device)
         self._terrain_fields = self._precompute_terrain()
 
         self.actor_obs_dim = FRAME_OBS_DIM * cfg.observations.history
@@ -453,7 +455,10 @@ class TrackingEnv:
         self.episodes_finished = self.episodes_finished + done.sum()
         self.episodes_terminated = self.episodes_terminated + terminated.sum()
         if bool(done.any()):
-            self._reset_worlds(done.nonzero().squeeze(-1))
+            ended = done.nonzero().squeeze(-1)
+            if cfg.sampling.mode == "adaptive":
+                self.sampler.record(self.sample[ended], terminated[ended])
+            self._reset_worlds(ended)
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
 
     # ------------------------------------------------------------------------------------ resume
@@ -490,6 +495,7 @@ class TrackingEnv:
             "penalty_curriculum": [self.penalty_curriculum_started, int(self.episodes_finished),
                                    int(self.episodes_terminated)],
             "randomizer_rng": self.randomizer.rng.bit_generator.state,
+            "sampler": self.sampler.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -517,6 +523,8 @@ class TrackingEnv:
         self.episodes_finished += int(finished)
         self.episodes_terminated += int(terminated)
         self.randomizer.rng.bit_generator.state = state["randomizer_rng"]
+        if "sampler" in state:  # absent in states saved before adaptive sampling existed
+            self.sampler.load_state_dict(state["sampler"])
         self.backend.set_state(ids, state["qpos"].numpy(), state["qvel"].numpy())
 
     # ------------------------------------------------------------------------------------ internals
@@ -592,7 +600,7 @@ class TrackingEnv:
 
     def _reset_worlds(self, ids: torch.Tensor) -> None:
         n, dev = ids.numel(), self.device
-        sample = torch.randint(self.data.num_samples, (n,), device=dev)
+        sample = self.sampler.draw(n)
         frame = torch.zeros(n, dtype=torch.long, device=dev)
         if self.cfg.rsi_prob > 0 and self.rsi_frame_table.numel() > 0:
             rsi = torch.rand(n, device=dev) < self.cfg.rsi_prob

@@ -56,6 +56,8 @@ def evaluation_env_config(env_cfg, eval_cfg: EvalConfig):
     cfg = copy.deepcopy(env_cfg)
     if hasattr(cfg, "rsi_prob"):
         cfg.rsi_prob = 0.0  # episodes from t = 0 so every keyframe is scored
+    if hasattr(cfg, "sampling"):
+        cfg.sampling.mode = "uniform"  # every ψ of a range counts the same in its score
     if hasattr(cfg, "randomization"):
         cfg.randomization.enabled = bool(eval_cfg.domain_randomization)
     if hasattr(cfg, "observations") and not eval_cfg.domain_randomization:
