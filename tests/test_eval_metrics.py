@@ -1,5 +1,7 @@
 """The paper's metrics on hand-made trajectories whose answers are known."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -93,3 +95,50 @@ def test_eval_config_from_dict():
         EvalConfig.from_dict({"runs": 0})
     with pytest.raises(PipelineInputError, match="evaluate.video: fps"):
         EvalConfig.from_dict({"video": {"fps": "fast"}})
+
+
+# ------------------------------------------------------------------------------ ψ reached
+def test_psi_reach_fit_and_read_by_hand():
+    from pipeline.evaluation.metrics import PsiReach
+
+    psi = np.linspace(0.2, 2.0, 7)
+    far = np.zeros((7, 4, 3))
+    far[:, 2:, 0] = (psi - 1.1)[:, None]  # the landing (keyframe 2) and after move along x by ψ − ψ_raw
+    reach = PsiReach.fit(psi, far)
+    assert reach.keyframe == 2 and reach.axis == pytest.approx([1.0, 0.0, 0.0]) and reach.slope == pytest.approx(1.0)
+    misses = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [-0.2, 0.05, 0.3], [0.0, 0.0, 0.0]])
+    assert reach.reached(1.5, misses) == pytest.approx(1.3)  # landed 0.2 m short of its 1.5 m target
+    assert math.isnan(reach.reached(1.5, misses[:2]))  # fell before the landing keyframe
+
+    triple = np.zeros((7, 3, 3))  # cumulative: landing k carries k/3 of ψ − ψ_raw; the last moves most
+    triple[:, :, 0] = (psi - 2.4)[:, None] * np.array([1, 2, 3]) / 3
+    assert PsiReach.fit(psi, triple).keyframe == 2
+    high = np.zeros((7, 3, 3))
+    high[:, 1, 2] = 0.5 * (psi - 0.2)  # an apex along z at half a metre per unit ψ
+    r = PsiReach.fit(psi, high)
+    assert r.keyframe == 1 and r.axis == pytest.approx([0, 0, 1]) and r.slope == pytest.approx(0.5)
+    assert r.reached(1.0, np.array([[0, 0, 0], [0, 0, -0.1], [0, 0, 0]])) == pytest.approx(0.8)
+
+    assert PsiReach.fit(psi, np.zeros((7, 3, 3))) is None  # nothing edited (the original motion)
+    turn = np.zeros((7, 2, 3))
+    turn[:, 1, 0], turn[:, 1, 1] = np.cos(psi) - 1, np.sin(psi)  # a heading edit: not a line
+    assert PsiReach.fit(psi, turn) is None
+    assert PsiReach.fit(psi[:1], far[:1]) is None
+
+
+def test_psi_reached_in_episode_metrics_and_aggregate():
+    from pipeline.evaluation.metrics import PsiReach
+
+    reach = PsiReach(keyframe=1, axis=np.array([1.0, 0.0, 0.0]), slope=1.0)
+    crossed = np.array([False, True, False, True])
+    miss = np.zeros((4, 3))
+    miss[3, 0] = -0.3  # the second crossing is keyframe 1
+    records = [EpisodeRecord(body_error_world=np.full((4, 2), e), body_error_local=np.zeros((4, 2)),
+                             keyframe_crossed=crossed, joint_acc=np.zeros((4, 1)), psi=p, num_keyframes=2,
+                             keyframe_miss=miss) for p, e in ((1.0, 0.1), (1.4, 2.0))]
+    eps = [episode_metrics(r, reach=reach) for r in records]
+    assert [e.psi_reached for e in eps] == pytest.approx([0.7, 1.1])
+    assert [e.success for e in eps] == [True, False]
+    out = aggregate(eps)
+    assert out["psi_reached"] == pytest.approx(0.9) and out["psi_reached_max"] == pytest.approx(0.7)
+    assert math.isnan(episode_metrics(records[0]).psi_reached)  # no PsiReach: not measured

@@ -11,6 +11,7 @@ from pipeline.evaluation.config import EvalConfig
 from pipeline.evaluation.evaluate import PolicyRunner, evaluate_policy, range_mask, rollout, spread_in_ranges
 from pipeline.evaluation.metrics import aggregate, episode_metrics
 from pipeline.evaluation.report import results_table
+from test_env import data, quiet_cfg  # noqa: F401  (a 61-frame standing clip; targets moved forward by ψ)
 
 
 class ScriptedEnv:
@@ -89,3 +90,21 @@ def test_policy_runner_samples_when_not_deterministic():
     assert (first - mean_runner(obs)[0]).std() == pytest.approx(1.0, rel=0.2)  # init std exp(0)
     with pytest.raises(PipelineInputError, match="deterministic"):
         PolicyRunner(torch.nn.Linear(460, 27), deterministic=False)
+
+
+def test_psi_reached_from_a_real_env(data):  # noqa: F811
+    """The env's keyframe misses reach the metric: a robot standing on the spot while the test clip's
+    keyframe targets move forward by ψ reached ψ = 0 whatever it was asked."""
+    from pipeline.envs.tracking_env import TrackingEnv
+    from pipeline.evaluation.metrics import PsiReach
+
+    reach = PsiReach.fit(data.psi, data.keyframe_offsets)
+    assert reach is not None and reach.slope == pytest.approx(1.0)
+    env = TrackingEnv(quiet_cfg(), data, num_envs=3)
+    env.termination_threshold = math.inf
+    hold = lambda obs: (torch.zeros(obs.shape[0], env.action_dim), None, None)  # noqa: E731
+    records = rollout(env, hold, episodes_per_env=1, num_keyframes=data.num_keyframes)
+    metrics = [episode_metrics(r, reach=reach) for r in records]
+    assert {round(m.psi, 2) for m in metrics} <= {0.0, 0.05, 0.1}
+    for m in metrics:
+        assert m.success and m.psi_reached == pytest.approx(0.0, abs=0.02)

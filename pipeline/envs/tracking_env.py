@@ -387,6 +387,7 @@ class TrackingEnv:
         err2_w = ((site_pos - ref_pos_w) ** 2).sum(-1)
         error_w = err2_w.sqrt()
         keyframe_error_w = error_w  # replaced on crossing rows by the error against the keyframe target
+        keyframe_miss_w = torch.zeros(self.num_envs, 3, device=self.device)  # mean body − target, crossing rows
         sparse = torch.zeros(self.num_envs, device=self.device)
         terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         if cfg.variant.tracking == "dense":
@@ -401,8 +402,10 @@ class TrackingEnv:
             k = torch.searchsorted(self.kf_phase, phase[ids] + _EPS, right=True) - 1
             self.next_kf[ids] = k + 1
             crossed_kf[ids] = k
-            err2 = ((site_pos[ids] - self.kf_target_pos[self.sample[ids], k]) ** 2).sum(-1)
+            miss = site_pos[ids] - self.kf_target_pos[self.sample[ids], k]
+            err2 = (miss**2).sum(-1)
             keyframe_error_w = error_w.index_put((ids,), err2.sqrt())
+            keyframe_miss_w = keyframe_miss_w.index_put((ids,), miss.mean(1))
             if cfg.variant.tracking == "sparse":
                 g = self._global_terms(err2, site_quat[ids], self.kf_target_quat[k])
                 sparse[ids] = self.kf_scale[k] * (w.global_body_pos * g[0] + w.global_body_rot * g[1]
@@ -438,6 +441,7 @@ class TrackingEnv:
             "keyframe_index": crossed_kf,
             "body_pos_error_w": error_w,
             "keyframe_body_error_w": keyframe_error_w,
+            "keyframe_miss_w": keyframe_miss_w,
             "body_pos_error_local": local_err2.sqrt(),
             "joint_acc": joint_acc,
             "phase": phase.to(torch.float32),

@@ -21,7 +21,7 @@ import torch
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.evaluation.config import EvalConfig
-from pipeline.evaluation.metrics import EpisodeMetrics, EpisodeRecord, episode_metrics
+from pipeline.evaluation.metrics import EpisodeMetrics, EpisodeRecord, PsiReach, episode_metrics
 from pipeline.keyframes.tracking_data import TrackingData
 
 
@@ -111,7 +111,8 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
 
     Reads from `info` (env contract): keyframe_crossed, body_pos_error_w, body_pos_error_local,
     joint_acc, phase, psi; and info["keyframe_body_error_w"] when the env provides the error
-    against the exact keyframe target (else body_pos_error_w on the crossing step).
+    against the exact keyframe target (else body_pos_error_w on the crossing step), and
+    info["keyframe_miss_w"] (mean body position minus the keyframe target) when it has it.
     """
     n = env.num_envs
     obs = env.reset()
@@ -126,6 +127,7 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
         world = _np(info.get("keyframe_body_error_w", info["body_pos_error_w"]))
         if "keyframe_body_error_w" in info:
             world = np.where(crossed[:, None], world, _np(info["body_pos_error_w"]))
+        miss = _np(info["keyframe_miss_w"]) if "keyframe_miss_w" in info else np.full((n, 3), np.nan)
         local = _np(info["body_pos_error_local"])
         acc = _np(info["joint_acc"])
         phase = _np(info["phase"])
@@ -139,7 +141,7 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
             b = buffers[i]
             b["world"].append(world[i]); b["local"].append(local[i]); b["crossed"].append(crossed[i])
             b["acc"].append(acc[i]); b["phase"].append(phase[i]); b["dphi"].append(dphi_np[i])
-            b["adapter"].append(adapter_np[i]); b["psi"] = float(psi[i])
+            b["adapter"].append(adapter_np[i]); b["psi"] = float(psi[i]); b["miss"].append(miss[i])
             if done[i]:
                 records.append(_to_record(b, num_keyframes))
                 buffers[i] = _empty_buffer()
@@ -155,7 +157,8 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
 
 
 def _empty_buffer() -> dict[str, list]:
-    return {"world": [], "local": [], "crossed": [], "acc": [], "phase": [], "dphi": [], "adapter": [], "psi": 0.0}
+    return {"world": [], "local": [], "crossed": [], "acc": [], "phase": [], "dphi": [], "adapter": [], "miss": [],
+            "psi": 0.0}
 
 
 def _to_record(b: dict, num_keyframes: int) -> EpisodeRecord:
@@ -163,7 +166,7 @@ def _to_record(b: dict, num_keyframes: int) -> EpisodeRecord:
         body_error_world=np.stack(b["world"]), body_error_local=np.stack(b["local"]),
         keyframe_crossed=np.array(b["crossed"]), joint_acc=np.stack(b["acc"]), psi=b["psi"],
         num_keyframes=num_keyframes, phase=np.array(b["phase"]), phase_rate_offset=np.array(b["dphi"]),
-        adapter_action_norm=np.array(b["adapter"]),
+        adapter_action_norm=np.array(b["adapter"]), keyframe_miss=np.stack(b["miss"]),
     )
 
 
@@ -197,6 +200,7 @@ def evaluate_policy(policy: PolicyRunner, data: TrackingData, eval_cfg: EvalConf
             raise PipelineInputError(f"task {data.task}", f"psi.{name}",
                                      f"no ψ sample of the tracking data lies in {intervals}")
         ranges[name] = (intervals, subset_tracking_data(data, mask))
+    reach = PsiReach.fit(data.psi, data.keyframe_offsets)  # on every sample: one axis for all ranges
     runs = []
     for run in range(eval_cfg.runs):
         per_range = {}
@@ -205,7 +209,7 @@ def evaluate_policy(policy: PolicyRunner, data: TrackingData, eval_cfg: EvalConf
             per_env = math.ceil(eval_cfg.episodes_per_range / num_envs)
             env = make_env(subset, num_envs, eval_cfg.seed + 1000 * run + r)
             records = rollout(env, policy, per_env, data.num_keyframes)
-            per_range[name] = [episode_metrics(rec, eval_cfg.success_threshold_m)
+            per_range[name] = [episode_metrics(rec, eval_cfg.success_threshold_m, reach)
                                for rec in records[: eval_cfg.episodes_per_range]]
         runs.append(per_range)
     return EvaluationResult(runs, {k: [list(map(float, i)) for i in v[0]] for k, v in ranges.items()})

@@ -7,6 +7,8 @@ Definitions (AdaMimic, "Evaluation metrics"):
   * E_g-bpe (mm): world-frame body position error averaged over bodies and keyframe phases.
   * E_l-bpe (mm): root-frame body position error averaged over bodies and all steps.
   * E_smth (rad/s^2): mean absolute joint acceleration over the episode.
+Not in the paper: ψ reached (`PsiReach`), the task variable the robot actually achieved, e.g. how far
+a far jump landed; per range its mean and the farthest a successful episode reached.
 
 Errors are pooled: over a set of episodes, E_g-bpe is the mean over every (episode, keyframe,
 body) sample, E_l-bpe over every (episode, step, body) sample, E_smth over every (episode, step,
@@ -22,6 +24,7 @@ import numpy as np
 
 SUCCESS_THRESHOLD_M = 1.0
 METRIC_NAMES = ("success", "e_l_bpe", "e_g_bpe", "e_smth")
+REACH_NAMES = ("psi_reached", "psi_reached_max")  # the task variable achieved (PsiReach), not in the paper's table
 METRIC_LABELS = {
     "success": "Succ. (%)",
     "e_l_bpe": "E_l-bpe (mm)",
@@ -51,12 +54,15 @@ class EpisodeRecord:
     phase: np.ndarray | None = None
     phase_rate_offset: np.ndarray | None = None
     adapter_action_norm: np.ndarray | None = None
+    keyframe_miss: np.ndarray | None = None  # (T, 3) mean body position − keyframe target on crossing rows
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.body_error_world = np.asarray(self.body_error_world, dtype=np.float64)
         self.body_error_local = np.asarray(self.body_error_local, dtype=np.float64)
         self.keyframe_crossed = np.asarray(self.keyframe_crossed, dtype=bool).reshape(-1)
+        if self.keyframe_miss is not None:
+            self.keyframe_miss = np.asarray(self.keyframe_miss, dtype=np.float64).reshape(-1, 3)
         self.joint_acc = np.asarray(self.joint_acc, dtype=np.float64)
         t = self.keyframe_crossed.shape[0]
         for name in ("body_error_world", "body_error_local", "joint_acc"):
@@ -81,6 +87,7 @@ class EpisodeMetrics:
     local_error_count: int
     joint_acc_abs_sum: float  # rad/s^2, over (step, joint) samples
     joint_acc_count: int
+    psi_reached: float = float("nan")  # see PsiReach; nan when not measurable
 
 
 def keyframe_mean_errors(body_error_world: np.ndarray, keyframe_crossed: np.ndarray) -> np.ndarray:
@@ -99,9 +106,54 @@ def episode_success(body_error_world, keyframe_crossed, num_keyframes: int,
     return bool(np.all(per_keyframe <= threshold))
 
 
-def episode_metrics(record: EpisodeRecord, threshold: float = SUCCESS_THRESHOLD_M) -> EpisodeMetrics:
+@dataclass(frozen=True)
+class PsiReach:
+    """The ψ an episode actually reached, read off where the robot was at the edited keyframe.
+
+    Editing moves keyframe k's target linearly in ψ along one axis (far jump: the landing along x by
+    ψ − ψ_raw; high jump: the apex along z), fitted here on the dataset's samples. An episode that
+    misses the target by m along that axis reached ψ + m / slope: a far jump landing 0.2 m short of
+    its 1.5 m target reached 1.3 m, and one that never left the ground reached about 0. Non-linear
+    edits (heading) or tasks without edits have no PsiReach (`fit` returns None).
+    """
+
+    keyframe: int  # the keyframe whose target moves most with ψ (the first of equals: the landing)
+    axis: np.ndarray  # (3,) unit direction it moves in
+    slope: float  # metres per unit of ψ
+
+    @staticmethod
+    def fit(psi: np.ndarray, keyframe_offsets: np.ndarray, min_r2: float = 0.999) -> "PsiReach | None":
+        psi = np.asarray(psi, dtype=np.float64)
+        offsets = np.asarray(keyframe_offsets, dtype=np.float64)  # (N, K, 3)
+        if psi.shape[0] < 2 or np.ptp(psi) <= 0:
+            return None
+        dpsi = psi - psi.mean()
+        doff = offsets - offsets.mean(axis=0)
+        slopes = np.einsum("n,nkc->kc", dpsi, doff) / float(dpsi @ dpsi)  # (K, 3) least squares
+        norms = np.linalg.norm(slopes, axis=-1)
+        k = int(np.argmax(norms >= norms.max() * (1 - 1e-6)))
+        if norms[k] < 1e-9:
+            return None
+        residual = doff[:, k] - dpsi[:, None] * slopes[k]
+        total = float((doff[:, k] ** 2).sum())
+        if total <= 0 or 1.0 - float((residual**2).sum()) / total < min_r2:
+            return None
+        return PsiReach(keyframe=k, axis=slopes[k] / norms[k], slope=float(norms[k]))
+
+    def reached(self, psi: float, keyframe_misses: np.ndarray) -> float:
+        """`keyframe_misses`: (K_crossed, 3) miss vectors in crossing order (episodes from t = 0)."""
+        if keyframe_misses.shape[0] <= self.keyframe or not np.all(np.isfinite(keyframe_misses[self.keyframe])):
+            return float("nan")
+        return float(psi + keyframe_misses[self.keyframe] @ self.axis / self.slope)
+
+
+def episode_metrics(record: EpisodeRecord, threshold: float = SUCCESS_THRESHOLD_M,
+                    reach: PsiReach | None = None) -> EpisodeMetrics:
     crossed = record.keyframe_crossed
     at_keyframes = record.body_error_world[crossed]
+    reached = float("nan")
+    if reach is not None and record.keyframe_miss is not None:
+        reached = reach.reached(float(record.psi), np.asarray(record.keyframe_miss, dtype=np.float64)[crossed])
     return EpisodeMetrics(
         psi=float(record.psi),
         success=episode_success(record.body_error_world, crossed, record.num_keyframes, threshold),
@@ -111,6 +163,7 @@ def episode_metrics(record: EpisodeRecord, threshold: float = SUCCESS_THRESHOLD_
         local_error_count=int(record.body_error_local.size),
         joint_acc_abs_sum=float(np.abs(record.joint_acc).sum()),
         joint_acc_count=int(record.joint_acc.size),
+        psi_reached=reached,
     )
 
 
@@ -121,7 +174,7 @@ def _ratio(num: float, den: int) -> float:
 def aggregate(episodes: list[EpisodeMetrics]) -> dict[str, float]:
     """Success rate (%) and pooled errors (E_*-bpe in mm, E_smth in rad/s^2) over episodes."""
     if not episodes:
-        return {name: float("nan") for name in METRIC_NAMES} | {"episodes": 0}
+        return {name: float("nan") for name in METRIC_NAMES + REACH_NAMES} | {"episodes": 0}
     return {
         "success": 100.0 * float(np.mean([e.success for e in episodes])),
         "e_l_bpe": 1000.0 * _ratio(sum(e.local_error_sum for e in episodes),
@@ -130,8 +183,18 @@ def aggregate(episodes: list[EpisodeMetrics]) -> dict[str, float]:
                                    sum(e.global_error_count for e in episodes)),
         "e_smth": _ratio(sum(e.joint_acc_abs_sum for e in episodes),
                          sum(e.joint_acc_count for e in episodes)),
+        **_reach(episodes),
         "episodes": len(episodes),
     }
+
+
+def _reach(episodes: list[EpisodeMetrics]) -> dict[str, float]:
+    """psi_reached: mean ψ reached; psi_reached_max: the farthest reached by a successful episode."""
+    reached = np.array([e.psi_reached for e in episodes], dtype=np.float64)
+    ok = np.array([e.success for e in episodes], dtype=bool) & np.isfinite(reached)
+    finite = reached[np.isfinite(reached)]
+    return {"psi_reached": float(finite.mean()) if finite.size else float("nan"),
+            "psi_reached_max": float(reached[ok].max()) if ok.any() else float("nan")}
 
 
 def aggregate_ranges(runs: list[dict[str, list[EpisodeMetrics]]]) -> dict[str, dict[str, dict[str, float]]]:
@@ -154,8 +217,8 @@ def aggregate_ranges(runs: list[dict[str, list[EpisodeMetrics]]]) -> dict[str, d
 def mean_std(values: list[dict[str, float]]) -> dict[str, dict[str, float]]:
     """Mean and (population) std over runs of each metric; `episodes` is summed."""
     out: dict[str, dict[str, float]] = {}
-    for metric in METRIC_NAMES:
-        column = np.array([v[metric] for v in values], dtype=np.float64)
+    for metric in METRIC_NAMES + REACH_NAMES:
+        column = np.array([v.get(metric, np.nan) for v in values], dtype=np.float64)
         finite = column[np.isfinite(column)]
         out[metric] = {
             "mean": float(finite.mean()) if finite.size else float("nan"),

@@ -18,6 +18,7 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.evaluation.metrics import (
     METRIC_LABELS,
     METRIC_NAMES,
+    REACH_NAMES,
     EpisodeMetrics,
     EpisodeRecord,
     aggregate_ranges,
@@ -47,7 +48,7 @@ def per_psi_rows(runs: list[dict[str, list[EpisodeMetrics]]], psi_ranges: dict, 
 
 
 def write_per_psi(csv_path: str | Path, rows: list[dict], json_path: str | Path | None = None) -> None:
-    columns = ["psi", "psi_lo", "psi_hi", *METRIC_NAMES, "episodes"]
+    columns = ["psi", "psi_lo", "psi_hi", *METRIC_NAMES, *REACH_NAMES, "episodes"]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     writer.writeheader()
@@ -123,6 +124,16 @@ def _cell(stat: dict, metric: str) -> str:
     return f"{m:.{digits}f} ± {s:.{digits}f}"
 
 
+def _reach_line(doc: dict) -> str:
+    cells = []
+    for g in RANGE_ORDER:
+        r = doc["ranges"].get(g, {})
+        mean, best = r.get("psi_reached", {}).get("mean", np.nan), r.get("psi_reached_max", {}).get("mean", np.nan)
+        if np.isfinite(mean):
+            cells.append(f"{g} {mean:.2f} / " + (f"{best:.2f}" if np.isfinite(best) else "–"))
+    return ", ".join(cells)
+
+
 def results_table(docs: dict[str, dict]) -> str:
     """Markdown table in the paper's layout from {variant: metrics json}."""
     short = {"success": "Succ.↑", "e_l_bpe": "E_l-bpe↓", "e_g_bpe": "E_g-bpe↓", "e_smth": "E_smth↓"}
@@ -135,6 +146,11 @@ def results_table(docs: dict[str, dict]) -> str:
         lines.append(f"| {variant} | " + " | ".join(cells) + " |")
     note = ("\nSucc. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s²; mean ± std over runs "
             f"({next(iter(docs.values()))['ranges']['overall']['episodes']['runs']} runs).\n") if docs else ""
+    reach = [f"- {variant}: {_reach_line(doc)}" for variant, doc in docs.items() if _reach_line(doc)]
+    if reach:
+        note += ("\nψ reached (the task variable achieved, from where the robot was at the edited keyframe; "
+                 "mean over all episodes / farthest by a successful one; the clip's own ψ_raw "
+                 f"{next(iter(docs.values())).get('psi_raw', float('nan')):.2f}):\n" + "\n".join(reach) + "\n")
     return "\n".join(lines) + "\n" + note
 
 

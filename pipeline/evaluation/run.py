@@ -61,6 +61,7 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
     result = evaluate_policy(policy, data, eval_cfg, make_env)
     doc = metrics_document(task, variant, result.runs, result.psi_ranges,
                            {"episodes_per_range": eval_cfg.episodes_per_range, "runs": eval_cfg.runs,
+                            "psi_raw": float(data.psi_raw),
                             "domain_randomization": eval_cfg.domain_randomization, "policy_stage": meta.get("stage")})
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
