@@ -61,7 +61,7 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
 def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 128) -> tuple[dict, list]:
     """The evaluate stage's metrics on the trained ψ range: deterministic policy, episodes from t = 0
     over the whole segment, no randomisation, success = every keyframe within 1 m. Also returns the
-    per-episode (ψ, success) pairs."""
+    per-episode metrics."""
     from pipeline.evaluation.config import EvalConfig
     from pipeline.evaluation.evaluate import PolicyRunner, default_env_factory, evaluate_policy
     from pipeline.evaluation.metrics import aggregate
@@ -70,23 +70,20 @@ def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 128) ->
     module, _ = load_policy(policy_dir)
     eval_cfg = EvalConfig(episodes_per_range=episodes, runs=1, num_envs=min(episodes, 32), ranges=("train",))
     result = evaluate_policy(PolicyRunner(module), data, eval_cfg, default_env_factory(env_cfg, eval_cfg))
-    episodes_ = result.runs[0]["train"]
-    return aggregate(episodes_), [(e.psi, e.success) for e in episodes_]
+    per_episode = result.runs[0]["train"]
+    return aggregate(per_episode), per_episode
 
 
-def success_by_psi(pairs: list, bins: int = 6) -> str:
+def success_by_psi(episodes: list, bins: int = 6) -> str:
     """`0.20-0.50 1.00 (n=21) | ...`: where in the ψ range the policy succeeds."""
     import numpy as np
 
-    psi = np.array([p for p, _ in pairs])
-    ok = np.array([s for _, s in pairs], dtype=float)
-    edges = np.linspace(psi.min(), psi.max(), bins + 1)
-    cells = []
-    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        inside = (psi >= lo) & ((psi < hi) | (i == bins - 1))
-        if inside.any():
-            cells.append(f"{lo:.2f}-{hi:.2f} {ok[inside].mean():.2f} (n={int(inside.sum())})")
-    return " | ".join(cells)
+    from pipeline.evaluation.metrics import bin_by_psi
+
+    psi = [e.psi for e in episodes]
+    rows = bin_by_psi(episodes, np.linspace(min(psi), max(psi), bins + 1))
+    return " | ".join(f"{r['psi_lo']:.2f}-{r['psi_hi']:.2f} {r['success'] / 100:.2f} (n={r['episodes']})"
+                      for r in rows if r["episodes"] > 0)
 
 
 def set_dotted(tree: dict, item: str) -> None:
@@ -165,12 +162,12 @@ def main() -> None:
         print("  ".join(c.rjust(len(n)) for c, (n, _, _) in zip(cells, cols)))
     print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
     train_success = metrics.get("success_rate") or 0.0
-    ev, pairs = evaluate_from_start(out / "policy", data, env_cfg)
+    ev, episodes = evaluate_from_start(out / "policy", data, env_cfg)
     print(f"[learn_cpu] training episodes (stochastic policy, randomised, half from a reference state): "
           f"success {train_success:.3f}")
     print(f"[learn_cpu] evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes): "
           f"success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, E_l-bpe {ev['e_l_bpe']:.0f} mm")
-    print(f"[learn_cpu] success by ψ (m): {success_by_psi(pairs)}")
+    print(f"[learn_cpu] success by ψ (m): {success_by_psi(episodes)}")
     print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
 
 

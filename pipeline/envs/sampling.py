@@ -37,8 +37,8 @@ class SampleSampler:
         return torch.multinomial(self.probabilities(), n, replacement=True)
 
     def record(self, samples: torch.Tensor, failed: torch.Tensor) -> None:
-        """Episodes that ended this step: their sample index and whether they failed."""
-        if samples.numel() == 0:
+        """Episodes that ended this step: their sample index and whether they failed (adaptive mode only)."""
+        if self.cfg.mode != "adaptive" or samples.numel() == 0:
             return
         count = torch.zeros_like(self.failure_rate).index_add_(0, samples, torch.ones_like(samples, dtype=torch.float64))
         fails = torch.zeros_like(self.failure_rate).index_add_(0, samples, failed.to(torch.float64))

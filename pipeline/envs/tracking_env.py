@@ -460,8 +460,7 @@ class TrackingEnv:
         self.episodes_terminated = self.episodes_terminated + terminated.sum()
         if bool(done.any()):
             ended = done.nonzero().squeeze(-1)
-            if cfg.sampling.mode == "adaptive":
-                self.sampler.record(self.sample[ended], terminated[ended])
+            self.sampler.record(self.sample[ended], terminated[ended])
             self._reset_worlds(ended)
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
 

@@ -153,7 +153,7 @@ def episode_metrics(record: EpisodeRecord, threshold: float = SUCCESS_THRESHOLD_
     at_keyframes = record.body_error_world[crossed]
     reached = float("nan")
     if reach is not None and record.keyframe_miss is not None:
-        reached = reach.reached(float(record.psi), np.asarray(record.keyframe_miss, dtype=np.float64)[crossed])
+        reached = reach.reached(float(record.psi), record.keyframe_miss[crossed])
     return EpisodeMetrics(
         psi=float(record.psi),
         success=episode_success(record.body_error_world, crossed, record.num_keyframes, threshold),
@@ -218,7 +218,7 @@ def mean_std(values: list[dict[str, float]]) -> dict[str, dict[str, float]]:
     """Mean and (population) std over runs of each metric; `episodes` is summed."""
     out: dict[str, dict[str, float]] = {}
     for metric in METRIC_NAMES + REACH_NAMES:
-        column = np.array([v.get(metric, np.nan) for v in values], dtype=np.float64)
+        column = np.array([v[metric] for v in values], dtype=np.float64)
         finite = column[np.isfinite(column)]
         out[metric] = {
             "mean": float(finite.mean()) if finite.size else float("nan"),

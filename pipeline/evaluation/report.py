@@ -146,7 +146,8 @@ def results_table(docs: dict[str, dict]) -> str:
         lines.append(f"| {variant} | " + " | ".join(cells) + " |")
     note = ("\nSucc. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s²; mean ± std over runs "
             f"({next(iter(docs.values()))['ranges']['overall']['episodes']['runs']} runs).\n") if docs else ""
-    reach = [f"- {variant}: {_reach_line(doc)}" for variant, doc in docs.items() if _reach_line(doc)]
+    reach_lines = {variant: _reach_line(doc) for variant, doc in docs.items()}
+    reach = [f"- {variant}: {line}" for variant, line in reach_lines.items() if line]
     if reach:
         note += ("\nψ reached (the task variable achieved, from where the robot was at the edited keyframe; "
                  "mean over all episodes / farthest by a successful one; the clip's own ψ_raw "
