@@ -78,6 +78,33 @@ def test_real_env_smoke_and_bad_range():
         evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
 
 
+def test_evaluation_is_decided_by_its_seed():
+    """The same `seed` gives the same episodes whatever the caller's RNG state, another seed other
+    ones, and the caller's RNG stream is left where it was."""
+    from pipeline.envs.config import EnvConfig
+    from pipeline.evaluation.evaluate import default_env_factory
+    from pipeline.rl.networks import Stage1Policy
+    from test_export import _tracking_data
+
+    torch.manual_seed(0)
+    data = _tracking_data(frames=40)
+    policy = PolicyRunner(Stage1Policy(460, 27, [32], phase_rate=0.03))
+
+    def psis(seed: int, caller_seed: int) -> list[float]:
+        cfg = EvalConfig.from_dict({"episodes_per_range": 6, "runs": 1, "num_envs": 6, "seed": seed})
+        torch.manual_seed(caller_seed)
+        result = evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
+        return [e.psi for name in ("easy", "hard") for e in result.runs[0][name]]
+
+    assert psis(0, caller_seed=1) == psis(0, caller_seed=2)
+    assert psis(0, caller_seed=1) != psis(5, caller_seed=1)
+    torch.manual_seed(3)
+    expected = torch.rand(3)
+    torch.manual_seed(3)
+    psis(0, caller_seed=3)
+    assert torch.equal(torch.rand(3), expected)
+
+
 def test_policy_runner_samples_when_not_deterministic():
     from pipeline.rl.networks import Stage1Policy
 

@@ -207,8 +207,13 @@ def evaluate_policy(policy: PolicyRunner, data: TrackingData, eval_cfg: EvalConf
         for r, (name, (_, subset)) in enumerate(ranges.items()):
             num_envs = min(eval_cfg.num_envs, eval_cfg.episodes_per_range)
             per_env = math.ceil(eval_cfg.episodes_per_range / num_envs)
-            env = make_env(subset, num_envs, eval_cfg.seed + 1000 * run + r)
-            records = rollout(env, policy, per_env, data.num_keyframes)
+            seed = eval_cfg.seed + 1000 * run + r
+            # The env draws ψ samples from torch's global RNG, which this torch seeds anew in every
+            # process: seed it here (restoring the caller's afterwards) so `evaluate.seed` decides.
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                env = make_env(subset, num_envs, seed)
+                records = rollout(env, policy, per_env, data.num_keyframes)
             per_range[name] = [episode_metrics(rec, eval_cfg.success_threshold_m, reach)
                                for rec in records[: eval_cfg.episodes_per_range]]
         runs.append(per_range)
