@@ -148,7 +148,8 @@ def main() -> None:
             ("fall_h", "{:6.2f}", "ended_by_base_height"), ("fall_t", "{:6.2f}", "ended_by_tilt"),
             ("kf_err", "{:6.2f}", "ended_by_keyframe_error"), ("ret_sparse", "{:10.1f}", "return_sparse"),
             ("ret_dense", "{:9.1f}", "return_dense"), ("std", "{:5.2f}", "action_std"),
-            ("kf_thr", "{:6.2f}", "termination_threshold"), ("pen", "{:4.2f}", "penalty_scale")]
+            ("kf_thr", "{:6.2f}", "termination_threshold"), ("pen", "{:4.2f}", "penalty_scale"),
+            ("psi_lvl", "{:7.2f}", "psi_level")]
     print("  ".join(name for name, _, _ in cols))
     stride = max(1, len(history) // 30)
     rows = history[::stride]

@@ -15,10 +15,11 @@ from test_env import data  # noqa: F401  (the module fixture: a 61-frame standin
 N = 6
 
 
-def noisy_cfg() -> EnvConfig:
-    # everything random on; pushes often so a few steps see some; ψ drawn by failure rate (its own state)
+def noisy_cfg(sampling: str = "adaptive") -> EnvConfig:
+    # everything random on; pushes often so a few steps see some; ψ drawn by a sampler with its own state
+    # (failure rates, or per-world curriculum levels)
     return EnvConfig.from_dict({"rsi_prob": 0.5, "randomization": {"push": {"interval_s": [0.04, 0.2]}},
-                                "sampling": {"mode": "adaptive"}})
+                                "sampling": {"mode": sampling, "levels": 3}})
 
 
 def run(env, actions):
@@ -30,8 +31,9 @@ def run(env, actions):
     return out
 
 
-def test_fresh_env_continues_bit_for_bit_after_load(data):  # noqa: F811
-    cfg = noisy_cfg()
+@pytest.mark.parametrize("sampling", ["adaptive", "curriculum"])
+def test_fresh_env_continues_bit_for_bit_after_load(data, sampling):  # noqa: F811
+    cfg = noisy_cfg(sampling)
     assert cfg.randomization.enabled
     torch.manual_seed(0)
     env = TrackingEnv(cfg, data, num_envs=N)
@@ -60,6 +62,8 @@ def test_fresh_env_continues_bit_for_bit_after_load(data):  # noqa: F811
         for i, (a, b) in enumerate(zip(e, g)):
             assert torch.equal(a, b), f"step {t}, output {i}"
     assert fresh.termination_threshold == env.termination_threshold and fresh.penalty_scale == env.penalty_scale
+    assert torch.equal(fresh.sampler.level, env.sampler.level)
+    assert torch.equal(fresh.sampler.failure_rate, env.sampler.failure_rate)
     ids = np.arange(N)
     for name in ("body_mass", "geom_friction", "actuator_gainprm"):
         assert np.array_equal(fresh.backend.get_model_field(name, ids), env.backend.get_model_field(name, ids))

@@ -1,13 +1,22 @@
-"""Which D_edit sample (ψ) a world tracks next: uniform, or adaptive to where episodes fail.
+"""Which D_edit sample (ψ) a world tracks next: uniform, adaptive to where episodes fail, or a
+curriculum that widens ψ outwards from the clip's own value.
 
-Adaptive sampling follows BeyondMimic's idea (there over start times of a long motion, here over the
-edited samples): keep a running failure rate per sample and draw the next episodes in proportion to
-it, mixed with a uniform share so solved samples are still rehearsed. Training compute then goes
-to the edge of what the policy can already do instead of to gaps it clears every time.
+* adaptive — BeyondMimic's idea (there over start times of a long motion, here over the edited
+  samples): keep a running failure rate per sample and draw in proportion to it, mixed with a uniform
+  share so solved samples are still rehearsed.
+* curriculum — legged_gym's terrain curriculum over edit size: the samples are ranked by |ψ − ψ_raw|
+  and cut into `levels` groups; each world draws from its own level, goes one up after an episode it
+  finishes and one down after a fall, and a world that finishes the top level restarts at a random
+  one so the whole range stays rehearsed. Worlds then gather where the policy is just failing, which
+  uniform draws over a wide range (most of it out of reach or already solved) rarely visit.
+
+Only episodes that began before the first edited keyframe say anything about ψ (a reference-state
+start after the far jump's landing succeeds at any ψ), so the env records those alone.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from pipeline.common.errors import PipelineInputError
@@ -15,15 +24,34 @@ from pipeline.envs.config import SamplingConfig
 
 
 class SampleSampler:
-    def __init__(self, cfg: SamplingConfig, num_samples: int, device="cpu"):
+    def __init__(self, cfg: SamplingConfig, psi: np.ndarray, psi_raw: float, num_worlds: int, device="cpu"):
         self.cfg = cfg
-        self.num_samples = num_samples
-        # Start pessimistic: every sample is assumed to fail until episodes say otherwise.
-        self.failure_rate = torch.ones(num_samples, dtype=torch.float64, device=device)
+        self.num_samples = len(psi)
+        self.device = torch.device(device)
+        # adaptive: start pessimistic, every sample is assumed to fail until episodes say otherwise
+        self.failure_rate = torch.ones(self.num_samples, dtype=torch.float64, device=device)
+        # curriculum: level l owns samples level_table[l, :level_size[l]] (ranked by edit size)
+        if cfg.mode == "curriculum" and not 2 <= cfg.levels <= self.num_samples:
+            raise PipelineInputError("env", "sampling.levels",
+                                     f"must be in [2, {self.num_samples}] (the number of ψ samples), got {cfg.levels}")
+        levels = min(cfg.levels, self.num_samples)
+        ranked = np.argsort(np.abs(np.asarray(psi, dtype=np.float64) - psi_raw), kind="stable")
+        groups = np.array_split(ranked, levels)
+        table = np.zeros((levels, max(len(g) for g in groups)), dtype=np.int64)
+        for row, group in zip(table, groups):
+            row[:len(group)] = group
+        self.level_table = torch.as_tensor(table, device=device)
+        self.level_size = torch.as_tensor([len(g) for g in groups], device=device)
+        self.level = torch.zeros(num_worlds, dtype=torch.long, device=device)
+
+    @property
+    def num_levels(self) -> int:
+        return self.level_table.shape[0]
 
     def probabilities(self) -> torch.Tensor:
+        """Adaptive and uniform modes: the chance of each sample at the next draw."""
         uniform = torch.full_like(self.failure_rate, 1.0 / self.num_samples)
-        if self.cfg.mode == "uniform":
+        if self.cfg.mode != "adaptive":
             return uniform
         total = float(self.failure_rate.sum())
         if total <= 0.0:
@@ -31,15 +59,32 @@ class SampleSampler:
         u = self.cfg.uniform_ratio
         return u * uniform + (1.0 - u) * self.failure_rate / total
 
-    def draw(self, n: int) -> torch.Tensor:
+    def draw(self, worlds: torch.Tensor) -> torch.Tensor:
+        """The sample index each of `worlds` tracks in its next episode."""
+        n = worlds.numel()
         if self.cfg.mode == "uniform":
-            return torch.randint(self.num_samples, (n,), device=self.failure_rate.device)
-        return torch.multinomial(self.probabilities(), n, replacement=True)
+            return torch.randint(self.num_samples, (n,), device=self.device)
+        if self.cfg.mode == "adaptive":
+            return torch.multinomial(self.probabilities(), n, replacement=True)
+        level = self.level[worlds]
+        slot = (torch.rand(n, device=self.device) * self.level_size[level]).long()
+        return self.level_table[level, slot]
 
-    def record(self, samples: torch.Tensor, failed: torch.Tensor) -> None:
-        """Episodes that ended this step: their sample index and whether they failed (adaptive mode only)."""
-        if self.cfg.mode != "adaptive" or samples.numel() == 0:
+    def record(self, worlds: torch.Tensor, samples: torch.Tensor, failed: torch.Tensor) -> None:
+        """Episodes that tested the edit and ended this step: their world, sample and whether they failed."""
+        if worlds.numel() == 0:
             return
+        if self.cfg.mode == "adaptive":
+            self._record_failures(samples, failed)
+        elif self.cfg.mode == "curriculum":
+            top = self.num_levels - 1
+            up = (self.level[worlds] + 1).clamp(max=top)
+            moved = torch.where(failed, (self.level[worlds] - 1).clamp(min=0), up)
+            graduated = ~failed & (self.level[worlds] == top)
+            restart = torch.randint(self.num_levels, (worlds.numel(),), device=self.device)
+            self.level[worlds] = torch.where(graduated, restart, moved)
+
+    def _record_failures(self, samples: torch.Tensor, failed: torch.Tensor) -> None:
         count = torch.zeros_like(self.failure_rate).index_add_(0, samples, torch.ones_like(samples, dtype=torch.float64))
         fails = torch.zeros_like(self.failure_rate).index_add_(0, samples, failed.to(torch.float64))
         seen = count > 0
@@ -48,12 +93,19 @@ class SampleSampler:
         self.failure_rate = torch.where(seen, self.failure_rate + step * (fails / count.clamp(min=1) - self.failure_rate),
                                         self.failure_rate)
 
+    def mean_level(self) -> float:
+        """Curriculum progress in [0, 1]: the worlds' mean level over the top level."""
+        return float(self.level.double().mean()) / (self.num_levels - 1) if self.num_levels > 1 else 0.0
+
     def state_dict(self) -> dict:
-        return {"failure_rate": self.failure_rate.detach().cpu().clone()}
+        return {"failure_rate": self.failure_rate.detach().cpu().clone(), "level": self.level.detach().cpu().clone()}
 
     def load_state_dict(self, state: dict) -> None:
-        saved = state["failure_rate"]
-        if saved.shape != self.failure_rate.shape:
-            raise PipelineInputError("env state", "sampler.failure_rate",
-                                     f"expected {tuple(self.failure_rate.shape)}, got {tuple(saved.shape)}")
-        self.failure_rate = saved.to(self.failure_rate.device, torch.float64).clone()
+        for name in ("failure_rate", "level"):
+            if name not in state:  # states saved before the curriculum existed have no levels
+                continue
+            saved, current = state[name], getattr(self, name)
+            if saved.shape != current.shape:
+                raise PipelineInputError("env state", f"sampler.{name}",
+                                         f"expected {tuple(current.shape)}, got {tuple(saved.shape)}")
+            setattr(self, name, saved.to(current.device, current.dtype).clone())

@@ -70,7 +70,7 @@ class TrackingEnv:
         self._precompute_reference()
         self._precompute_robot()
         self.randomizer = DomainRandomizer(cfg.randomization, self.model, self.backend)
-        self.sampler = SampleSampler(cfg.sampling, data.num_samples, self.device)
+        self.sampler = SampleSampler(cfg.sampling, data.psi, data.psi_raw, n, self.device)
         self._terrain_fields = self._precompute_terrain()
 
         self.actor_obs_dim = FRAME_OBS_DIM * cfg.observations.history
@@ -152,6 +152,10 @@ class TrackingEnv:
         self.kf_target_pos = self._tensor(m.body_pos[kf][None] + np.asarray(d.keyframe_offsets)[:, :, None])  # (S,K,B,3)
         self.kf_target_quat = self._tensor(m.body_quat[kf])  # (K,B,4): edits only translate
         self.rsi_frame_table = torch.as_tensor(self._rsi_frames(kf, d.keyframe_labels, t), device=self.device)
+        # An episode that starts at or after the first edited keyframe never meets the edit: the
+        # sampler learns nothing about its ψ from it.
+        edited = kf[np.asarray(d.edited, dtype=bool)]
+        self.first_edit_frame = int(edited[0]) if edited.size else 0
 
     def _rsi_frames(self, kf: np.ndarray, labels, num_frames: int) -> np.ndarray:
         """Frames a reference-state start may use (`EnvConfig.rsi_frames`); never the last frame,
@@ -223,6 +227,7 @@ class TrackingEnv:
         self.sample = torch.zeros(n, dtype=torch.long, device=dev)
         self.next_kf = torch.zeros(n, dtype=torch.long, device=dev)
         self.episode_step = torch.zeros(n, dtype=torch.long, device=dev)
+        self.start_frame = torch.zeros(n, dtype=torch.long, device=dev)
         self.prev_action, self.prev_action2 = z(n, j), z(n, j)
         self.prev_joint_vel = z(n, j)
         self.odometry, self.odom_origin = z(n, 3), z(n, 3)
@@ -460,7 +465,8 @@ class TrackingEnv:
         self.episodes_terminated = self.episodes_terminated + terminated.sum()
         if bool(done.any()):
             ended = done.nonzero().squeeze(-1)
-            self.sampler.record(self.sample[ended], terminated[ended])
+            tested = ended[self.start_frame[ended] < self.first_edit_frame]
+            self.sampler.record(tested, self.sample[tested], terminated[tested])
             self._reset_worlds(ended)
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
 
@@ -468,7 +474,7 @@ class TrackingEnv:
     # Per-world buffers that, with the physics state and the per-world model, decide every future step.
     _STATE_BUFFERS = ("phase", "frame", "sample", "next_kf", "episode_step", "prev_action", "prev_action2",
                       "prev_joint_vel", "odometry", "odom_origin", "odom_origin_quat", "obs_history",
-                      "privileged", "target_history", "delay_lag", "delay_substeps", "push_timer")
+                      "privileged", "target_history", "delay_lag", "delay_substeps", "push_timer", "start_frame")
 
     def _model_fields(self) -> list[str]:
         """The MjModel fields this env writes per world: the randomiser's and the terrain's."""
@@ -510,8 +516,11 @@ class TrackingEnv:
         # model first: set_state's forward pass then sees each world's own masses and terrain
         for name, values in state["model_fields"].items():
             self.backend.set_model_field(name, ids, np.asarray(values))
+        buffers = dict(state["buffers"])
+        if "start_frame" not in buffers:  # states saved before it existed; exact at stage 1's fixed phase rate
+            buffers["start_frame"] = (buffers["frame"] - buffers["episode_step"]).clamp(min=0)
         for name in self._STATE_BUFFERS:
-            saved = state["buffers"][name]
+            saved = buffers[name]
             current = getattr(self, name)
             if saved.shape != current.shape or saved.dtype != current.dtype:
                 raise PipelineInputError("env state", name,
@@ -526,7 +535,7 @@ class TrackingEnv:
         self.episodes_finished += int(finished)
         self.episodes_terminated += int(terminated)
         self.randomizer.rng.bit_generator.state = state["randomizer_rng"]
-        if "sampler" in state:  # absent in states saved before adaptive sampling existed
+        if "sampler" in state:  # absent in states saved before ψ sampling had a state
             self.sampler.load_state_dict(state["sampler"])
         self.backend.set_state(ids, state["qpos"].numpy(), state["qvel"].numpy())
 
@@ -603,7 +612,7 @@ class TrackingEnv:
 
     def _reset_worlds(self, ids: torch.Tensor) -> None:
         n, dev = ids.numel(), self.device
-        sample = self.sampler.draw(n)
+        sample = self.sampler.draw(ids)
         frame = torch.zeros(n, dtype=torch.long, device=dev)
         if self.cfg.rsi_prob > 0 and self.rsi_frame_table.numel() > 0:
             rsi = torch.rand(n, device=dev) < self.cfg.rsi_prob
@@ -631,6 +640,7 @@ class TrackingEnv:
 
         self.sample[ids] = sample
         self.frame[ids] = frame
+        self.start_frame[ids] = frame
         self.phase[ids] = frame.to(torch.float64) / (self.num_frames - 1)
         self.next_kf[ids] = torch.searchsorted(self.kf_frames, frame, right=True)
         self.episode_step[ids] = 0

@@ -222,6 +222,9 @@ class Trainer:
                 value = getattr(self.env, name, None)
                 if isinstance(value, (int, float)):
                     stats[name] = float(value)
+            sampler = getattr(self.env, "sampler", None)
+            if sampler is not None and sampler.cfg.mode == "curriculum":
+                stats["psi_level"] = sampler.mean_level()
             self.history.append(stats)
             if writer is not None:
                 for k, v in stats.items():
