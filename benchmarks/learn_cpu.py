@@ -167,7 +167,8 @@ def main() -> None:
     print(f"[learn_cpu] training episodes (stochastic policy, randomised, half from a reference state): "
           f"success {train_success:.3f}")
     print(f"[learn_cpu] evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes): "
-          f"success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, E_l-bpe {ev['e_l_bpe']:.0f} mm")
+          f"success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, E_l-bpe {ev['e_l_bpe']:.0f} mm, "
+          f"ψ reached {ev['psi_reached']:.2f} m (farthest successful {ev['psi_reached_max']:.2f} m; clip {data.psi_raw:.2f} m)")
     print(f"[learn_cpu] success by ψ (m): {success_by_psi(episodes)}")
     print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
 

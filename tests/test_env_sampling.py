@@ -75,8 +75,7 @@ def test_curriculum_levels_by_hand():
     assert torch.equal(restored.level, sampler.level)
     with pytest.raises(PipelineInputError, match="sampler.level"):
         SampleSampler(SamplingConfig(mode="curriculum", levels=3), psi, 1.1, num_worlds=5).load_state_dict(sampler.state_dict())
-    with pytest.raises(PipelineInputError, match="sampling.levels"):
-        SampleSampler(SamplingConfig(mode="curriculum", levels=7), psi, 1.1, num_worlds=4)
+    assert SampleSampler(SamplingConfig(mode="curriculum", levels=8), psi, 1.1, num_worlds=4).num_levels == 6
 
 
 def test_only_episodes_that_met_the_edit_are_recorded(data):  # noqa: F811
@@ -121,10 +120,23 @@ def test_env_resets_draw_from_the_sampler_and_record_falls(data):  # noqa: F811
     assert env.sampler.failure_rate.tolist() == [1.0, 1.0, 1.0]
 
 
+def test_sweep_gives_every_sample_in_turn():
+    sampler = SampleSampler(SamplingConfig(mode="sweep"), np.linspace(0.2, 2.0, 5), 1.1, num_worlds=3)
+    first = sampler.draw(torch.arange(3))
+    again = sampler.draw(torch.tensor([1]))  # world 1 ends first: its second episode
+    rest = sampler.draw(torch.tensor([0, 2]))
+    assert first.tolist() == [0, 1, 2] and again.tolist() == [4] and rest.tolist() == [3, 0]
+    assert sampler.draw(torch.tensor([1])).tolist() == [2]  # (1 + 2·3) mod 5
+    # 5 worlds × 4 episodes over 5 samples: each sample exactly 4 times, in any finishing order
+    sampler = SampleSampler(SamplingConfig(mode="sweep"), np.linspace(0.2, 2.0, 5), 1.1, num_worlds=5)
+    drawn = torch.cat([sampler.draw(torch.randperm(5)) for _ in range(4)])
+    assert torch.bincount(drawn).tolist() == [4] * 5
+
+
 def test_evaluation_scores_every_psi_alike():
-    for mode in ("adaptive", "curriculum"):
+    for mode in ("uniform", "adaptive", "curriculum"):
         cfg = EnvConfig.from_dict({"sampling": {"mode": mode}})
-        assert evaluation_env_config(cfg, EvalConfig()).sampling.mode == "uniform"
+        assert evaluation_env_config(cfg, EvalConfig()).sampling.mode == "sweep"
         assert cfg.sampling.mode == mode  # the training config is untouched
 
 

@@ -78,30 +78,43 @@ def test_real_env_smoke_and_bad_range():
         evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
 
 
-def test_evaluation_is_decided_by_its_seed():
-    """The same `seed` gives the same episodes whatever the caller's RNG state, another seed other
-    ones, and the caller's RNG stream is left where it was."""
+def test_evaluation_is_decided_by_its_seed_and_sweeps_psi():
+    """Every policy meets the same ψ samples in the same order, each sample of a range equally often;
+    the same `seed` gives the same episodes whatever the caller's RNG state, another seed other
+    randomised worlds, and the caller's RNG stream is left where it was."""
+    import numpy as np
+
     from pipeline.envs.config import EnvConfig
     from pipeline.evaluation.evaluate import default_env_factory
     from pipeline.rl.networks import Stage1Policy
     from test_export import _tracking_data
 
-    torch.manual_seed(0)
     data = _tracking_data(frames=40)
-    policy = PolicyRunner(Stage1Policy(460, 27, [32], phase_rate=0.03))
 
-    def psis(seed: int, caller_seed: int) -> list[float]:
-        cfg = EvalConfig.from_dict({"episodes_per_range": 6, "runs": 1, "num_envs": 6, "seed": seed})
+    def evaluate(seed: int, caller_seed: int, policy_seed: int = 0, randomised: bool = False):
+        torch.manual_seed(policy_seed)
+        policy = PolicyRunner(Stage1Policy(460, 27, [32], phase_rate=0.03))
+        cfg = EvalConfig.from_dict({"episodes_per_range": 12, "runs": 1, "num_envs": 4, "seed": seed,
+                                    "domain_randomization": randomised})
         torch.manual_seed(caller_seed)
         result = evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
-        return [e.psi for name in ("easy", "hard") for e in result.runs[0][name]]
+        return [(e.psi, e.global_error_sum) for name in ("easy", "hard") for e in result.runs[0][name]]
 
-    assert psis(0, caller_seed=1) == psis(0, caller_seed=2)
-    assert psis(0, caller_seed=1) != psis(5, caller_seed=1)
+    # 6 samples per range, 4 worlds × 3 episodes: world w's k-th episode is sample (w + 4k) mod 6,
+    # kept in (episode, world) order, so each range lists its samples in order, twice
+    easy, hard = data.psi[data.psi <= 1.5 + 1e-9], data.psi[data.psi >= 1.5 - 1e-9]
+    expected_psi = np.concatenate([easy, easy, hard, hard])
+    for policy_seed in (0, 1):  # two policies, whose episodes end at other times
+        assert [p for p, _ in evaluate(0, 1, policy_seed)] == pytest.approx(expected_psi.tolist())
+
+    assert evaluate(0, caller_seed=1, randomised=True) == evaluate(0, caller_seed=2, randomised=True)
+    assert evaluate(0, caller_seed=1, randomised=True) != evaluate(5, caller_seed=1, randomised=True)
+    policy = PolicyRunner(Stage1Policy(460, 27, [32], phase_rate=0.03))
+    cfg = EvalConfig.from_dict({"episodes_per_range": 4, "runs": 1, "num_envs": 4, "domain_randomization": True})
     torch.manual_seed(3)
     expected = torch.rand(3)
     torch.manual_seed(3)
-    psis(0, caller_seed=3)
+    evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
     assert torch.equal(torch.rand(3), expected)
 
 

@@ -174,11 +174,12 @@ class SamplingConfig:
     """How a reset picks the edited sample (ψ) to track (pipeline/envs/sampling.py)."""
 
     # "uniform" | "adaptive": in proportion to each sample's running failure rate | "curriculum": each
-    # world climbs levels of growing |ψ − ψ_raw| as its episodes succeed
+    # world climbs levels of growing |ψ − ψ_raw| as its episodes succeed | "sweep": every sample in turn
+    # (what evaluation uses)
     mode: str = "uniform"
     uniform_ratio: float = 0.2  # adaptive: share of draws that stay uniform
     rate: float = 0.05  # adaptive: EMA step of a sample's failure rate per finished episode
-    levels: int = 8  # curriculum: groups of samples by edit size (at most the number of samples)
+    levels: int = 8  # curriculum: groups of samples by edit size (fewer samples: one level each)
 
 
 @dataclass
@@ -233,8 +234,8 @@ class EnvConfig:
             bad("rsi_frames", f"must be 'stance' or 'keyframes', got {self.rsi_frames!r}")
         if self.action_offset not in ("default", "reference"):
             bad("action_offset", f"must be 'default' or 'reference', got {self.action_offset!r}")
-        if self.sampling.mode not in ("uniform", "adaptive", "curriculum"):
-            bad("sampling.mode", f"must be 'uniform', 'adaptive' or 'curriculum', got {self.sampling.mode!r}")
+        if self.sampling.mode not in ("uniform", "adaptive", "curriculum", "sweep"):
+            bad("sampling.mode", f"must be 'uniform', 'adaptive', 'curriculum' or 'sweep', got {self.sampling.mode!r}")
         if self.sampling.levels < 2:
             bad("sampling.levels", "must be >= 2")
         if not 0.0 <= self.sampling.uniform_ratio <= 1.0:

@@ -1,5 +1,5 @@
-"""Which D_edit sample (ψ) a world tracks next: uniform, adaptive to where episodes fail, or a
-curriculum that widens ψ outwards from the clip's own value.
+"""Which D_edit sample (ψ) a world tracks next: uniform, adaptive to where episodes fail, a
+curriculum that widens ψ outwards from the clip's own value, or an even sweep for evaluation.
 
 * adaptive — BeyondMimic's idea (there over start times of a long motion, here over the edited
   samples): keep a running failure rate per sample and draw in proportion to it, mixed with a uniform
@@ -9,6 +9,9 @@ curriculum that widens ψ outwards from the clip's own value.
   finishes and one down after a fall, and a world that finishes the top level restarts at a random
   one so the whole range stays rehearsed. Worlds then gather where the policy is just failing, which
   uniform draws over a wide range (most of it out of reach or already solved) rarely visit.
+* sweep — evaluation: world w's k-th episode tracks sample (w + k·worlds) mod samples, so the samples
+  are scored equally often and two policies meet the same ψ values. Uniform draws leave the ψ mix to
+  chance (and to when each policy's episodes end), which moved a score by ±4 points over 128 episodes.
 
 Only episodes that began before the first edited keyframe say anything about ψ (a reference-state
 start after the far jump's landing succeeds at any ψ), so the env records those alone.
@@ -30,10 +33,8 @@ class SampleSampler:
         self.device = torch.device(device)
         # adaptive: start pessimistic, every sample is assumed to fail until episodes say otherwise
         self.failure_rate = torch.ones(self.num_samples, dtype=torch.float64, device=device)
-        # curriculum: level l owns samples level_table[l, :level_size[l]] (ranked by edit size)
-        if cfg.mode == "curriculum" and not 2 <= cfg.levels <= self.num_samples:
-            raise PipelineInputError("env", "sampling.levels",
-                                     f"must be in [2, {self.num_samples}] (the number of ψ samples), got {cfg.levels}")
+        # curriculum: level l owns samples level_table[l, :level_size[l]] (ranked by edit size); a dataset
+        # with fewer samples than levels gets one level per sample
         levels = min(cfg.levels, self.num_samples)
         ranked = np.argsort(np.abs(np.asarray(psi, dtype=np.float64) - psi_raw), kind="stable")
         groups = np.array_split(ranked, levels)
@@ -43,6 +44,8 @@ class SampleSampler:
         self.level_table = torch.as_tensor(table, device=device)
         self.level_size = torch.as_tensor([len(g) for g in groups], device=device)
         self.level = torch.zeros(num_worlds, dtype=torch.long, device=device)
+        self.num_worlds = num_worlds
+        self.episodes_drawn = torch.zeros(num_worlds, dtype=torch.long, device=device)  # sweep: per world
 
     @property
     def num_levels(self) -> int:
@@ -66,6 +69,10 @@ class SampleSampler:
             return torch.randint(self.num_samples, (n,), device=self.device)
         if self.cfg.mode == "adaptive":
             return torch.multinomial(self.probabilities(), n, replacement=True)
+        if self.cfg.mode == "sweep":
+            sample = (worlds + self.num_worlds * self.episodes_drawn[worlds]) % self.num_samples
+            self.episodes_drawn[worlds] += 1
+            return sample
         level = self.level[worlds]
         slot = (torch.rand(n, device=self.device) * self.level_size[level]).long()
         return self.level_table[level, slot]
@@ -98,11 +105,13 @@ class SampleSampler:
         return float(self.level.double().mean()) / (self.num_levels - 1) if self.num_levels > 1 else 0.0
 
     def state_dict(self) -> dict:
-        return {"failure_rate": self.failure_rate.detach().cpu().clone(), "level": self.level.detach().cpu().clone()}
+        return {name: getattr(self, name).detach().cpu().clone() for name in self._STATE}
+
+    _STATE = ("failure_rate", "level", "episodes_drawn")
 
     def load_state_dict(self, state: dict) -> None:
-        for name in ("failure_rate", "level"):
-            if name not in state:  # states saved before the curriculum existed have no levels
+        for name in self._STATE:
+            if name not in state:  # states saved before the curriculum and the sweep existed
                 continue
             saved, current = state[name], getattr(self, name)
             if saved.shape != current.shape:

@@ -35,7 +35,7 @@ def range_mask(psi: np.ndarray, intervals) -> np.ndarray:
 
 
 def subset_tracking_data(data: TrackingData, mask: np.ndarray) -> TrackingData:
-    """The same task restricted to the ψ samples in `mask` (the env samples uniformly among them)."""
+    """The same task restricted to the ψ samples in `mask` (the evaluation env sweeps through them)."""
     mask = np.asarray(mask, dtype=bool)
     return replace(
         data,
@@ -57,7 +57,7 @@ def evaluation_env_config(env_cfg, eval_cfg: EvalConfig):
     if hasattr(cfg, "rsi_prob"):
         cfg.rsi_prob = 0.0  # episodes from t = 0 so every keyframe is scored
     if hasattr(cfg, "sampling"):
-        cfg.sampling.mode = "uniform"  # every ψ of a range counts the same in its score
+        cfg.sampling.mode = "sweep"  # every ψ sample of a range in turn: equal weight, the same ψ for every policy
     if hasattr(cfg, "randomization"):
         cfg.randomization.enabled = bool(eval_cfg.domain_randomization)
     if hasattr(cfg, "observations") and not eval_cfg.domain_randomization:
@@ -118,7 +118,7 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
     obs = env.reset()
     buffers: list[dict[str, list]] = [_empty_buffer() for _ in range(n)]
     finished = np.zeros(n, dtype=int)
-    records: list[EpisodeRecord] = []
+    records: list[tuple[int, int, EpisodeRecord]] = []  # (episode index of its world, world, record)
     limit = max_steps if max_steps is not None else 10**7
     for _ in range(limit):
         action, dphi, adapter = policy(obs["actor"])
@@ -143,7 +143,7 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
             b["acc"].append(acc[i]); b["phase"].append(phase[i]); b["dphi"].append(dphi_np[i])
             b["adapter"].append(adapter_np[i]); b["psi"] = float(psi[i]); b["miss"].append(miss[i])
             if done[i]:
-                records.append(_to_record(b, num_keyframes))
+                records.append((int(finished[i]), int(i), _to_record(b, num_keyframes)))
                 buffers[i] = _empty_buffer()
                 finished[i] += 1
         if np.all(finished >= episodes_per_env):
@@ -152,8 +152,10 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
         # out of steps: the unfinished episodes count as they are (they missed their keyframes)
         for i in np.flatnonzero(finished < episodes_per_env):
             if buffers[i]["world"]:
-                records.append(_to_record(buffers[i], num_keyframes))
-    return records
+                records.append((int(finished[i]), int(i), _to_record(buffers[i], num_keyframes)))
+    # In episode-then-world order, not finishing order: a caller that keeps the first N keeps the same
+    # episodes whichever end first (finishing order would favour the short ones, i.e. the falls).
+    return [record for _, _, record in sorted(records, key=lambda r: r[:2])]
 
 
 def _empty_buffer() -> dict[str, list]:
