@@ -22,7 +22,7 @@ class VideoConfig:
 @dataclass(frozen=True)
 class EvalConfig:
     episodes_per_range: int = 64  # the paper used > 10 000; a CPU default that runs in minutes
-    runs: int = 3  # mean ± std over runs with different seeds
+    runs: int = 3  # mean ± std over runs with different seeds (equal unless randomisation or sampling is on)
     num_envs: int = 32
     seed: int = 0
     success_threshold_m: float = 1.0

@@ -145,7 +145,9 @@ def results_table(docs: dict[str, dict]) -> str:
         cells = [_cell(doc["ranges"][g][m], m) if g in doc["ranges"] else "–" for g in groups for m in METRIC_NAMES]
         lines.append(f"| {variant} | " + " | ".join(cells) + " |")
     note = ("\nSucc. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s²; mean ± std over runs "
-            f"({next(iter(docs.values()))['ranges']['overall']['episodes']['runs']} runs).\n") if docs else ""
+            f"({next(iter(docs.values()))['ranges']['overall']['episodes']['runs']} runs, seeded differently; every run "
+            "meets the same ψ samples, so runs differ only where domain randomisation or a sampling policy is "
+            "on).\n") if docs else ""
     reach_lines = {variant: _reach_line(doc) for variant, doc in docs.items()}
     reach = [f"- {variant}: {line}" for variant, line in reach_lines.items() if line]
     if reach:
