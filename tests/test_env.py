@@ -40,8 +40,11 @@ def data() -> TrackingData:
 
 
 def quiet_cfg(**extra) -> EnvConfig:
-    """No randomisation, no RSI, no odometry noise: a standing robot tracks the clip to the end."""
-    raw = {"randomization": {"enabled": False}, "rsi_prob": 0.0, "observations": {"odometry_noise_std": 0.0}}
+    """No randomisation, no RSI, no odometry noise: a standing robot tracks the clip to the end. ψ drawn
+    uniformly, so the worlds track different samples from the first reset (a curriculum starts them all
+    at the sample nearest ψ_raw)."""
+    raw = {"randomization": {"enabled": False}, "rsi_prob": 0.0, "observations": {"odometry_noise_std": 0.0},
+           "sampling": {"mode": "uniform"}}
     for key, value in extra.items():
         raw[key] = {**raw.get(key, {}), **value} if isinstance(value, dict) else value
     return EnvConfig.from_dict(raw)

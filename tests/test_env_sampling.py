@@ -113,7 +113,7 @@ def test_env_resets_draw_from_the_sampler_and_record_falls(data):  # noqa: F811
     assert env.sampler.failure_rate.tolist() == pytest.approx([0.0, 1.0, 0.5])
     assert int(env.sample[0]) in (1, 2)  # the reset drew in proportion to the failure rates
     # uniform mode records nothing
-    env = TrackingEnv(quiet_cfg(), data, num_envs=4)
+    env = TrackingEnv(quiet_cfg(sampling={"mode": "uniform"}), data, num_envs=4)
     env.reset()
     env.backend.set_state(torch.tensor([0]), qpos[:1], env.backend.qvel[:1].clone())
     env.step(torch.zeros(4, env.action_dim))

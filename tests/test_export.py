@@ -164,8 +164,8 @@ def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypa
     torch.manual_seed(2)
     cfg = load_robot_config()
     data = _tracking_data(wave=0.2)
-    env = TrackingEnv(EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0,
-                                           "action_offset": "reference"}), data, num_envs=4)
+    env = TrackingEnv(EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0,  # worlds at several ψ:
+                                           "action_offset": "reference", "sampling": {"mode": "uniform"}}), data, num_envs=4)
     layout = observation_layout(cfg, history=5)
     assert layout["dim"] == env.actor_obs_dim
     reference = ReferenceOffset.for_layout(data.motion.joint_pos, env.dphi, layout)

@@ -176,7 +176,9 @@ class SamplingConfig:
     # "uniform" | "adaptive": in proportion to each sample's running failure rate | "curriculum": each
     # world climbs levels of growing |ψ − ψ_raw| as its episodes succeed | "sweep": every sample in turn
     # (what evaluation uses)
-    mode: str = "uniform"
+    # Why curriculum: on benchmarks/learn_cpu.py (20 min, 2 seeds each, the same 128 evaluation episodes)
+    # it scored 0.58 and 0.47 from t = 0 against uniform draws' 0.41 and 0.36.
+    mode: str = "curriculum"
     uniform_ratio: float = 0.2  # adaptive: share of draws that stay uniform
     rate: float = 0.05  # adaptive: EMA step of a sample's failure rate per finished episode
     levels: int = 8  # curriculum: groups of samples by edit size (fewer samples: one level each)
