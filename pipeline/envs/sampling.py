@@ -84,10 +84,9 @@ class SampleSampler:
         if self.cfg.mode == "adaptive":
             self._record_failures(samples, failed)
         elif self.cfg.mode == "curriculum":
-            top = self.num_levels - 1
-            up = (self.level[worlds] + 1).clamp(max=top)
-            moved = torch.where(failed, (self.level[worlds] - 1).clamp(min=0), up)
-            graduated = ~failed & (self.level[worlds] == top)
+            level, top = self.level[worlds], self.num_levels - 1
+            moved = torch.where(failed, (level - 1).clamp(min=0), (level + 1).clamp(max=top))
+            graduated = ~failed & (level == top)
             restart = torch.randint(self.num_levels, (worlds.numel(),), device=self.device)
             self.level[worlds] = torch.where(graduated, restart, moved)
 
@@ -104,10 +103,10 @@ class SampleSampler:
         """Curriculum progress in [0, 1]: the worlds' mean level over the top level."""
         return float(self.level.double().mean()) / (self.num_levels - 1) if self.num_levels > 1 else 0.0
 
+    _STATE = ("failure_rate", "level", "episodes_drawn")
+
     def state_dict(self) -> dict:
         return {name: getattr(self, name).detach().cpu().clone() for name in self._STATE}
-
-    _STATE = ("failure_rate", "level", "episodes_drawn")
 
     def load_state_dict(self, state: dict) -> None:
         for name in self._STATE:

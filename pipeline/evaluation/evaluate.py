@@ -210,8 +210,9 @@ def evaluate_policy(policy: PolicyRunner, data: TrackingData, eval_cfg: EvalConf
             num_envs = min(eval_cfg.num_envs, eval_cfg.episodes_per_range)
             per_env = math.ceil(eval_cfg.episodes_per_range / num_envs)
             seed = eval_cfg.seed + 1000 * run + r
-            # The env draws ψ samples from torch's global RNG, which this torch seeds anew in every
-            # process: seed it here (restoring the caller's afterwards) so `evaluate.seed` decides.
+            # The env draws its randomness (domain randomisation, when on) from torch's global RNG, which
+            # this torch seeds anew in every process: seed it here (restoring the caller's afterwards) so
+            # `evaluate.seed` decides. ψ needs no seed: the evaluation env sweeps the samples.
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(seed)
                 env = make_env(subset, num_envs, seed)
