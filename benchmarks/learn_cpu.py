@@ -7,10 +7,14 @@ Prints the training curve, where success is the trainer's (stochastic policy, ra
 half the episodes from a reference state): no termination and a mean body error <= 1 m at every
 keyframe. Then evaluates the final policy as the evaluate stage does (deterministic, from t = 0 over
 the whole segment, no randomisation, 128 episodes), prints its success by ψ bin, and ends with that
-success: `success=<s> minutes=<m>`.
+success: `success=<s> minutes=<m>`. The same episodes are also scored on the paper's easy and hard ranges.
+
+With `--stage2-minutes M`, stage 2 (variant adamimic: phase and tracking adapters on the frozen stage-1
+policy, episodes from t = 0) then trains for M more minutes and is evaluated on the same episodes; the
+last line stays stage 1's, which is what the goal is about.
 
     .venv/bin/python benchmarks/learn_cpu.py [--minutes 20] [--segment 1.5] [--envs 192] [--out DIR]
-        [--psi LOW HIGH] [--keyframe-spacing S] [--set env.KEY=VALUE | train.KEY=VALUE ...]
+        [--psi LOW HIGH] [--keyframe-spacing S] [--stage2-minutes M] [--set env.KEY=VALUE | train.KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -86,6 +90,34 @@ def success_by_psi(episodes: list, bins: int = 6) -> str:
                       for r in rows if r["episodes"] > 0)
 
 
+def success_by_range(episodes: list, psi_ranges: dict) -> str:
+    """`easy [0.7, 1.6] 0.62 (n=64) | hard ...`: success on the task's evaluation ranges."""
+    import numpy as np
+
+    from pipeline.evaluation.evaluate import range_mask
+
+    psi = np.array([e.psi for e in episodes])
+    success = np.array([bool(e.success) for e in episodes])
+    cells = []
+    for name in ("easy", "hard"):
+        intervals = psi_ranges.get(name)
+        if not intervals:
+            continue
+        mask = range_mask(psi, intervals)
+        where = " ∪ ".join(f"[{lo:g}, {hi:g}]" for lo, hi in intervals)
+        rate = f"{success[mask].mean():.2f}" if mask.any() else "-"
+        cells.append(f"{name} {where} {rate} (n={int(mask.sum())})")
+    return " | ".join(cells)
+
+
+def report(label: str, ev: dict, episodes: list, data) -> None:
+    print(f"[learn_cpu] {label}: success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, "
+          f"E_l-bpe {ev['e_l_bpe']:.0f} mm, ψ reached {ev['psi_reached']:.2f} m (farthest successful "
+          f"{ev['psi_reached_max']:.2f} m; clip {data.psi_raw:.2f} m)")
+    print(f"[learn_cpu]   by ψ (m): {success_by_psi(episodes)}")
+    print(f"[learn_cpu]   by the paper's ranges: {success_by_range(episodes, data.psi_ranges)}")
+
+
 def set_dotted(tree: dict, item: str) -> None:
     """`env.randomization.enabled=false` -> tree["env"]["randomization"]["enabled"] = False (YAML scalar)."""
     import yaml
@@ -110,6 +142,8 @@ def main() -> None:
                         help="train on this jump-distance range instead of the paper's far_jump train range")
     parser.add_argument("--keyframe-spacing", type=float, default=None,
                         help="seconds between uniform keyframes (default: the task's, 0.3)")
+    parser.add_argument("--stage2-minutes", type=float, default=0.0,
+                        help="then train stage 2 on the stage-1 policy for this long and evaluate it too")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
@@ -166,12 +200,18 @@ def main() -> None:
     ev, episodes = evaluate_from_start(out / "policy", data, env_cfg)
     print(f"[learn_cpu] training episodes (stochastic policy, randomised, half from a reference state): "
           f"success {train_success:.3f}")
-    print(f"[learn_cpu] evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes): "
-          f"success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, E_l-bpe {ev['e_l_bpe']:.0f} mm, "
-          f"ψ reached {ev['psi_reached']:.2f} m (farthest successful {ev['psi_reached_max']:.2f} m; clip {data.psi_raw:.2f} m)")
-    print(f"[learn_cpu] success by ψ (m): {success_by_psi(episodes)}")
-    print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
+    report(f"stage 1, evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes)",
+           ev, episodes, data)
+    if args.stage2_minutes > 0:
+        from pipeline.rl.trainer import train_stage2
 
+        stage2_cfg = TrainConfig.from_dict({**overrides["train"], "variant": "adamimic", "iterations_stage2": 100000})
+        t2 = time.time()
+        train_stage2(data, env_cfg, stage2_cfg, out / "stage2", stage1_dir=out / "policy",
+                     time_limit_s=args.stage2_minutes * 60.0, tensorboard=False, progress=False, log=print)
+        ev2, episodes2 = evaluate_from_start(out / "stage2" / "policy", data, env_cfg)
+        report(f"stage 2 after {(time.time() - t2) / 60:.1f} more minutes, same episodes", ev2, episodes2, data)
+    print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
 
 if __name__ == "__main__":
     main()

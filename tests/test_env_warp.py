@@ -1,0 +1,114 @@
+"""TrackingEnv on the MuJoCo Warp backend: the GPU profile's environment, run on CPU here.
+
+test_sim_warp.py checks the backends alone. This checks what only the environment does to one: domain
+randomisation and the gap terrain written per world through `set_model_field`, reference-state starts
+through `set_state`, and resets of ended worlds in the middle of a run. Same seed, same clip: the two
+backends must start from the same states and models and stay together.
+
+How far apart they may drift: Warp computes in float32. A reference pose with a foot exactly on the
+floor (the retargeting snaps feet to it) is 1e-8 m above it in float64 and 1e-7 m below it in
+float32, so Warp's foot touches one substep (5 ms) earlier than MuJoCo C's; measured here, that moves
+an ankle by about 2e-3 rad, and the two then settle together. The tolerances below allow for that.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("mujoco_warp")
+
+import pipeline.sim.backend as backend_module  # noqa: E402
+from pipeline.envs.config import EnvConfig  # noqa: E402
+from pipeline.envs.tracking_env import TrackingEnv  # noqa: E402
+from pipeline.keyframes.config import load_tasks, load_yaml_strict  # noqa: E402
+from pipeline.keyframes.edit import build_tracking_data  # noqa: E402
+from pipeline.keyframes.select import select_keyframes  # noqa: E402
+from pipeline.keyframes.synthetic import Flight, synthetic_jump_motion  # noqa: E402
+
+N = 4
+STEPS = 12
+ROOT_TOL = 0.01  # m, pelvis position after STEPS control steps
+FIELDS = ("body_mass", "body_ipos", "geom_friction", "geom_solref", "actuator_gainprm", "actuator_biasprm", "geom_pos")
+
+
+@pytest.fixture(scope="module")
+def far_jump():
+    tasks = load_tasks(load_yaml_strict(Path(__file__).resolve().parents[1] / "pipeline/keyframes/paper_tasks.yaml")["tasks"])
+    motion = synthetic_jump_motion([Flight(1.0, 0.4, 1.1)], duration=2.0)
+    task = tasks["far_jump"]
+    return build_tracking_data(motion, task, select_keyframes(motion, task), "edit", 8)
+
+
+@pytest.fixture
+def warp_allowed_on_cpu(monkeypatch):
+    monkeypatch.setattr(backend_module, "make_backend",
+                        functools.partial(backend_module.make_backend, allow_warp_on_cpu=True))
+
+
+def _pair(data, cfg):
+    envs = {}
+    for name in ("cpu", "warp"):
+        torch.manual_seed(0)  # the env draws ψ, starts and randomisation from torch's global RNG
+        env = TrackingEnv(cfg, data, num_envs=N, backend=name, device="cpu")
+        envs[name] = (env, env.reset())
+    return envs["cpu"], envs["warp"]
+
+
+def _step_both(cpu, warp, actions):
+    outs = []
+    for env in (cpu, warp):
+        torch.manual_seed(1)  # odometry noise and pushes draw in step
+        outs.append([env.step(a) for a in actions][-1])
+    return outs
+
+
+def test_randomised_worlds_on_a_gap_start_and_move_together(far_jump, warp_allowed_on_cpu):
+    cfg = EnvConfig.from_dict({"sampling": {"mode": "uniform"}})  # several ψ, so several terrains
+    (cpu, obs_cpu), (warp, obs_warp) = _pair(far_jump, cfg)
+    assert warp.backend.__class__.__name__ == "WarpBackend"
+    assert len(set(cpu.sample.tolist())) > 1, "the worlds should track different ψ samples"
+    ids = np.arange(N)
+    for field in FIELDS:
+        a = np.asarray(cpu.backend.get_model_field(field, ids), dtype=np.float64)
+        b = np.asarray(warp.backend.get_model_field(field, ids), dtype=np.float64)
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6, err_msg=field)
+    # randomisation and terrain did reach the worlds: they differ from one another
+    assert not np.allclose(cpu.backend.get_model_field("body_mass", ids)[0], cpu.backend.get_model_field("body_mass", ids)[1])
+    assert not np.allclose(cpu.backend.get_model_field("geom_pos", ids)[0], cpu.backend.get_model_field("geom_pos", ids)[1])
+    torch.testing.assert_close(warp.backend.qpos, cpu.backend.qpos, atol=1e-5, rtol=0)
+    torch.testing.assert_close(obs_warp["actor"], obs_cpu["actor"], atol=1e-4, rtol=0)
+
+    torch.manual_seed(2)
+    actions = [0.1 * torch.randn(N, cpu.action_dim) for _ in range(STEPS)]
+    (o_c, _, term_c, trunc_c, _), (o_w, _, term_w, trunc_w, _) = _step_both(cpu, warp, actions)
+    assert torch.isfinite(o_w["actor"]).all() and torch.isfinite(o_w["critic"]).all()
+    assert torch.equal(term_c, term_w) and torch.equal(trunc_c, trunc_w)
+    root_gap = (warp.backend.qpos[:, :3] - cpu.backend.qpos[:, :3]).abs().max().item()
+    assert root_gap < ROOT_TOL, root_gap
+    torch.testing.assert_close(warp.phase, cpu.phase)
+
+
+def test_an_ended_world_restarts_the_same_on_both(far_jump, warp_allowed_on_cpu):
+    cfg = EnvConfig.from_dict({"sampling": {"mode": "uniform"}, "rsi_prob": 1.0})
+    (cpu, _), (warp, _) = _pair(far_jump, cfg)
+    for env in (cpu, warp):  # world 0 lies on the floor: it must end and restart on this step
+        qpos, qvel = env.backend.qpos[:1].clone(), env.backend.qvel[:1].clone()
+        qpos[0, 2] = 0.15
+        env.backend.set_state(torch.tensor([0]), qpos, torch.zeros_like(qvel))
+    hold = [torch.zeros(N, cpu.action_dim)]
+    (_, _, term_c, _, _), (_, _, term_w, _, _) = _step_both(cpu, warp, hold)
+    assert bool(term_c[0]) and bool(term_w[0])
+    assert int(cpu.episode_step[0]) == int(warp.episode_step[0]) == 0  # restarted
+    assert int(cpu.sample[0]) == int(warp.sample[0])
+    torch.testing.assert_close(warp.backend.qpos[0], cpu.backend.qpos[0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(warp.backend.qvel[0], cpu.backend.qvel[0], atol=1e-4, rtol=0)
+    ids = np.array([0])
+    for field in ("body_mass", "geom_friction", "geom_pos"):
+        np.testing.assert_allclose(np.asarray(warp.backend.get_model_field(field, ids), dtype=np.float64),
+                                   np.asarray(cpu.backend.get_model_field(field, ids), dtype=np.float64),
+                                   rtol=1e-5, atol=1e-6, err_msg=field)
