@@ -213,5 +213,6 @@ def main() -> None:
         report(f"stage 2 after {(time.time() - t2) / 60:.1f} more minutes, same episodes", ev2, episodes2, data)
     print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
 
+
 if __name__ == "__main__":
     main()
