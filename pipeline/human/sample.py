@@ -6,7 +6,7 @@ clone without the paper's data. `python -m pipeline.human.sample [OUT.npz]` rewr
 
 How it is made:
   * joint rotations: a handful of scalar pose parameters (pelvis pitch, hip/knee/ankle flexion,
-    spine lean, arm swing, elbow bend) keyed at stand, crouch, take-off, tuck, reach, landing,
+    spine lean, arm swing, elbow bend) keyed at stand, crouch, rise, take-off, tuck, landing,
     absorb and recover, interpolated with monotone cubics (no overshoot), turned into SMPL
     local axis-angles of a left-right symmetric body;
   * root translation, by phase: on the ground the feet are pinned (their mean x stays where it
@@ -32,25 +32,28 @@ from pipeline.human import smpl
 
 SAMPLE_PATH = REPO_ROOT / "data" / "sample" / "far_jump_synthetic.npz"
 FPS = 30.0
-DURATION_S = 3.5
-TAKEOFF_S = 1.5
-TOUCHDOWN_S = 1.95
+DURATION_S = 2.6
+TAKEOFF_S = 0.9
+TOUCHDOWN_S = 1.35
 JUMP_DISTANCE_M = 1.0
 GRAVITY = 9.81
 
 # Pose parameters (radians), SMPL body frame (x left, y up, z front): + about x leans the trunk
 # forward / bends the knee / swings the arm back; hip flexion (thigh forward) is negative.
+# The crouch, the rise and the absorb bend the knees past the hips (shins tilted forward) so that,
+# on the G1, the centre of mass stays over the middle of the feet rather than at the heels, where a
+# tracking policy falls over backwards (tests/test_retarget.py::test_bundled_sample_balances_on_the_g1).
 PARAMS = ("pelvis_pitch", "spine_lean", "hip_flex", "knee_flex", "ankle_flex", "arm_swing", "elbow_flex")
 KEYFRAMES: list[tuple[float, dict[str, float]]] = [
-    (0.00, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.0, arm_swing=0.0, elbow_flex=0.1)),  # stand
-    (0.50, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.0, arm_swing=0.0, elbow_flex=0.1)),  # stand
-    (1.05, dict(pelvis_pitch=0.55, spine_lean=0.25, hip_flex=-1.05, knee_flex=1.35, ankle_flex=-0.45, arm_swing=1.0, elbow_flex=0.2)),  # crouch, arms back
-    (1.56, dict(pelvis_pitch=0.45, spine_lean=0.10, hip_flex=0.20, knee_flex=0.05, ankle_flex=0.55, arm_swing=-1.9, elbow_flex=0.2)),  # take-off: extended, arms up
-    (1.70, dict(pelvis_pitch=0.30, spine_lean=0.15, hip_flex=-1.40, knee_flex=1.50, ankle_flex=0.10, arm_swing=-1.3, elbow_flex=0.4)),  # tuck
-    (1.93, dict(pelvis_pitch=0.35, spine_lean=0.25, hip_flex=-0.60, knee_flex=0.45, ankle_flex=-0.10, arm_swing=-0.6, elbow_flex=0.3)),  # touch-down: legs reach
-    (2.30, dict(pelvis_pitch=0.60, spine_lean=0.30, hip_flex=-1.30, knee_flex=1.55, ankle_flex=-0.50, arm_swing=-0.9, elbow_flex=0.3)),  # absorb
-    (3.10, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.0, arm_swing=0.0, elbow_flex=0.1)),  # recover
-    (3.50, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.0, arm_swing=0.0, elbow_flex=0.1)),  # stand
+    (0.00, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand
+    (0.45, dict(pelvis_pitch=0.55, spine_lean=0.25, hip_flex=-1.05, knee_flex=1.65, ankle_flex=-0.75, arm_swing=1.0, elbow_flex=0.2)),  # crouch, arms back
+    (0.73, dict(pelvis_pitch=0.75, spine_lean=0.25, hip_flex=-0.75, knee_flex=1.25, ankle_flex=-0.50, arm_swing=0.2, elbow_flex=0.2)),  # rise, leaning into the jump
+    (0.96, dict(pelvis_pitch=0.45, spine_lean=0.10, hip_flex=0.20, knee_flex=0.05, ankle_flex=0.55, arm_swing=-1.9, elbow_flex=0.2)),  # take-off: extended, arms up
+    (1.10, dict(pelvis_pitch=0.30, spine_lean=0.15, hip_flex=-1.40, knee_flex=1.50, ankle_flex=0.10, arm_swing=-1.3, elbow_flex=0.4)),  # tuck
+    (1.33, dict(pelvis_pitch=0.35, spine_lean=0.25, hip_flex=-0.60, knee_flex=0.45, ankle_flex=-0.10, arm_swing=-0.6, elbow_flex=0.3)),  # touch-down: legs reach
+    (1.70, dict(pelvis_pitch=0.60, spine_lean=0.30, hip_flex=-1.30, knee_flex=1.85, ankle_flex=-0.80, arm_swing=-0.9, elbow_flex=0.3)),  # absorb
+    (2.30, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # recover
+    (2.60, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand
 ]
 # The body frame's front (+z) to world +x, its up (+y) to world +z, its left (+x) to world +y.
 BODY_TO_WORLD = quat.from_matrix(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
