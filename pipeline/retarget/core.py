@@ -21,7 +21,7 @@ from pipeline.motion.motion import Motion, RobotKinematics
 from pipeline.retarget import contacts as contact_ops
 from pipeline.retarget.config import RetargetConfig
 from pipeline.retarget.ik import make_retargeter
-from pipeline.retarget.quality import GeomHeights, foot_skate, joint_report, keypoint_error
+from pipeline.retarget.quality import GeomHeights, balance_report, foot_skate, joint_report, keypoint_error
 from pipeline.retarget.skeleton import RobotGeometry, body_scale, transfer_skeleton
 from pipeline.robot.g1 import build_model, joint_limits
 
@@ -110,6 +110,7 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
         "contact_fraction": [float(x) for x in out_contacts.mean(axis=0)],
         **joint_report(out, model),
         "jump": jump_summary(out.root_pos, out_contacts, fps_out),
+        "balance": balance_report(out, model, kin.qpos_index, heights.foot_bodies, out_contacts),
         "human_jump_scaled": jump_summary(scale * human.joint_pos[:, 0], contacts, human.fps),
     }
     return out, report

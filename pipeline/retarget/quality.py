@@ -12,12 +12,18 @@ Definitions (all on the final 50 Hz motion unless said):
   max_penetration_mm        deepest point of any robot collision geom below z = 0.
   joint_limit_violations    number of (frame, joint) entries outside the model's joint range.
   max_joint_vel             largest |joint velocity| in rad/s (central differences at 50 Hz).
+  balance                   can the robot stand where the motion stands still? Over the frames with both
+                            feet in contact and the whole-body centre of mass moving slowly (horizontal
+                            speed < 0.3 m/s, acceleration < 1 m/s^2): how far its ground projection lies
+                            inside the support polygon (convex hull of the sole geoms), minimum in mm
+                            (negative: outside, the robot would topple tracking it), and how many frames.
 """
 
 from __future__ import annotations
 
 import mujoco
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from pipeline.motion.motion import Motion
 from pipeline.robot.g1 import joint_limits
@@ -30,6 +36,7 @@ class GeomHeights:
         self.model = model
         self.data = mujoco.MjData(model)
         self.qpos_index = qpos_index
+        self.foot_bodies = foot_bodies
         robot_geoms = np.flatnonzero(model.geom_bodyid > 0)
         self.geoms = robot_geoms
         self.foot_of_geom = np.full(len(robot_geoms), -1)
@@ -100,3 +107,44 @@ def joint_report(motion: Motion, model: mujoco.MjModel) -> dict:
         "max_joint_vel_rad_s": float(vel.max()),
         "max_joint_vel_joint": motion.joint_names[worst],
     }
+
+
+SLOW_COM_SPEED = 0.3  # m/s
+SLOW_COM_ACCEL = 1.0  # m/s^2
+
+
+def balance_report(motion: Motion, model: mujoco.MjModel, qpos_index: np.ndarray, foot_bodies: tuple[int, int],
+                   contacts: np.ndarray) -> dict:
+    """See `balance` in the module docstring. contacts: (T, 2) bool, per foot."""
+    margin = support_margin(motion, model, qpos_index, foot_bodies)
+    com = margin["com"]
+    vel = np.gradient(com, motion.dt, axis=0)
+    acc = np.gradient(vel, motion.dt, axis=0)
+    slow = (np.linalg.norm(vel, axis=1) < SLOW_COM_SPEED) & (np.linalg.norm(acc, axis=1) < SLOW_COM_ACCEL)
+    checked = slow & contacts.all(axis=1)
+    inside = margin["inside"][checked]
+    return {"com_inside_support_min_mm": 1e3 * float(inside.min()) if inside.size else None,
+            "frames_checked": int(checked.sum())}
+
+
+def support_margin(motion: Motion, model: mujoco.MjModel, qpos_index: np.ndarray,
+                   foot_bodies: tuple[int, int]) -> dict[str, np.ndarray]:
+    """Per frame: the whole-body centre of mass on the ground plane (T, 2), and its signed distance (m)
+    inside the convex hull of both feet's sole capsules (T,), negative outside."""
+    data = mujoco.MjData(model)
+    soles = np.flatnonzero(np.isin(model.geom_bodyid, foot_bodies) & (model.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE))
+    com = np.empty((motion.num_frames, 2))
+    inside = np.empty(motion.num_frames)
+    for t in range(motion.num_frames):
+        data.qpos[:3], data.qpos[3:7] = motion.root_pos[t], motion.root_quat[t]
+        data.qpos[qpos_index] = motion.joint_pos[t]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        com[t] = data.subtree_com[0, :2]
+        # a capsule's segment ends (along its local z), widened by its radius below
+        half = data.geom_xmat[soles].reshape(-1, 3, 3)[:, :2, 2] * model.geom_size[soles, 1:2]
+        ends = np.concatenate([data.geom_xpos[soles, :2] + half, data.geom_xpos[soles, :2] - half])
+        hull = ConvexHull(ends)
+        # facet equations n.x + d <= 0 inside, |n| = 1: the nearest facet gives the distance
+        inside[t] = -(hull.equations[:, :2] @ com[t] + hull.equations[:, 2]).max() + model.geom_size[soles, 0].min()
+    return {"com": com, "inside": inside}
