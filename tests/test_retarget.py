@@ -94,7 +94,7 @@ def test_support_margin_sign():
     """Standing in the default pose the centre of mass is inside the feet; the same pose tilted 0.5 rad
     forward about the pelvis swings the feet ~0.3 m back under it, leaving the centre of mass outside."""
     from pipeline.motion.motion import RobotKinematics
-    from pipeline.retarget.quality import support_margin
+    from pipeline.retarget.quality import GeomHeights
     from pipeline.robot.g1 import default_qpos
 
     kin = RobotKinematics()
@@ -105,7 +105,7 @@ def test_support_margin_sign():
     motion = kin.motion(50.0, np.repeat(q[None, :3], 2, axis=0), root_quat,
                         np.repeat(q[None, kin.qpos_index], 2, axis=0))
     feet = tuple(kin.model.body(f"{side}_ankle_roll_link").id for side in ("left", "right"))
-    margin = support_margin(motion, kin.model, kin.qpos_index, feet)["inside"]
+    margin = GeomHeights(kin.model, kin.qpos_index, feet).support_margin(motion)["inside"]
     assert margin[0] > 0.02
     assert margin[1] < 0.0
 

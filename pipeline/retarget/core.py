@@ -110,7 +110,7 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
         "contact_fraction": [float(x) for x in out_contacts.mean(axis=0)],
         **joint_report(out, model),
         "jump": jump_summary(out.root_pos, out_contacts, fps_out),
-        "balance": balance_report(out, model, kin.qpos_index, heights.foot_bodies, out_contacts),
+        "balance": balance_report(out, heights, out_contacts),
         "human_jump_scaled": jump_summary(scale * human.joint_pos[:, 0], contacts, human.fps),
     }
     return out, report

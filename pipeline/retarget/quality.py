@@ -30,13 +30,15 @@ from pipeline.robot.g1 import joint_limits
 
 
 class GeomHeights:
-    """Lowest world z of each foot and of the whole robot, per frame, from collision geoms."""
+    """Per frame, from collision geoms: the lowest world z of each foot and of the whole robot, and how
+    far the centre of mass lies inside the feet."""
 
     def __init__(self, model: mujoco.MjModel, qpos_index: np.ndarray, foot_bodies: tuple[int, int]):
         self.model = model
         self.data = mujoco.MjData(model)
         self.qpos_index = qpos_index
-        self.foot_bodies = foot_bodies
+        self.soles = np.flatnonzero(np.isin(model.geom_bodyid, foot_bodies)
+                                    & (model.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE))
         robot_geoms = np.flatnonzero(model.geom_bodyid > 0)
         self.geoms = robot_geoms
         self.foot_of_geom = np.full(len(robot_geoms), -1)
@@ -51,15 +53,37 @@ class GeomHeights:
         feet = np.empty((t, 2))
         body = np.empty(t)
         for i in range(t):
-            self.data.qpos[:3] = motion.root_pos[i]
-            self.data.qpos[3:7] = motion.root_quat[i]
-            self.data.qpos[self.qpos_index] = motion.joint_pos[i]
-            mujoco.mj_kinematics(self.model, self.data)
+            self._pose(motion, i)
             z = self._lowest_z(self.data.geom_xpos[self.geoms], self.data.geom_xmat[self.geoms])
             body[i] = z.min()
             for side in range(2):
                 feet[i, side] = z[self.foot_of_geom == side].min()
         return feet, body
+
+    def support_margin(self, motion: Motion) -> dict[str, np.ndarray]:
+        """Per frame: the whole-body centre of mass on the ground plane (T, 2), and its signed distance (m)
+        inside the convex hull of both feet's sole capsules (T,), negative outside."""
+        model, data, soles = self.model, self.data, self.soles
+        com = np.empty((motion.num_frames, 2))
+        inside = np.empty(motion.num_frames)
+        for t in range(motion.num_frames):
+            self._pose(motion, t)
+            mujoco.mj_comPos(model, data)
+            com[t] = data.subtree_com[0, :2]
+            # a capsule's segment ends (along its local z), widened by its radius below
+            half = data.geom_xmat[soles].reshape(-1, 3, 3)[:, :2, 2] * model.geom_size[soles, 1:2]
+            ends = np.concatenate([data.geom_xpos[soles, :2] + half, data.geom_xpos[soles, :2] - half])
+            hull = ConvexHull(ends)
+            # facet equations n.x + d <= 0 inside, |n| = 1: the nearest facet gives the distance
+            inside[t] = -(hull.equations[:, :2] @ com[t] + hull.equations[:, 2]).max() + model.geom_size[soles, 0].min()
+        return {"com": com, "inside": inside}
+
+    def _pose(self, motion: Motion, i: int) -> None:
+        """Kinematics of frame i into self.data."""
+        self.data.qpos[:3] = motion.root_pos[i]
+        self.data.qpos[3:7] = motion.root_quat[i]
+        self.data.qpos[self.qpos_index] = motion.joint_pos[i]
+        mujoco.mj_kinematics(self.model, self.data)
 
     def _lowest_z(self, pos: np.ndarray, xmat: np.ndarray) -> np.ndarray:
         zrow = xmat[:, 6:9]  # third row of each rotation: world z of the geom's local axes
@@ -113,10 +137,9 @@ SLOW_COM_SPEED = 0.3  # m/s
 SLOW_COM_ACCEL = 1.0  # m/s^2
 
 
-def balance_report(motion: Motion, model: mujoco.MjModel, qpos_index: np.ndarray, foot_bodies: tuple[int, int],
-                   contacts: np.ndarray) -> dict:
+def balance_report(motion: Motion, heights: GeomHeights, contacts: np.ndarray) -> dict:
     """See `balance` in the module docstring. contacts: (T, 2) bool, per foot."""
-    margin = support_margin(motion, model, qpos_index, foot_bodies)
+    margin = heights.support_margin(motion)
     com = margin["com"]
     vel = np.gradient(com, motion.dt, axis=0)
     acc = np.gradient(vel, motion.dt, axis=0)
@@ -125,26 +148,3 @@ def balance_report(motion: Motion, model: mujoco.MjModel, qpos_index: np.ndarray
     inside = margin["inside"][checked]
     return {"com_inside_support_min_mm": 1e3 * float(inside.min()) if inside.size else None,
             "frames_checked": int(checked.sum())}
-
-
-def support_margin(motion: Motion, model: mujoco.MjModel, qpos_index: np.ndarray,
-                   foot_bodies: tuple[int, int]) -> dict[str, np.ndarray]:
-    """Per frame: the whole-body centre of mass on the ground plane (T, 2), and its signed distance (m)
-    inside the convex hull of both feet's sole capsules (T,), negative outside."""
-    data = mujoco.MjData(model)
-    soles = np.flatnonzero(np.isin(model.geom_bodyid, foot_bodies) & (model.geom_type == mujoco.mjtGeom.mjGEOM_CAPSULE))
-    com = np.empty((motion.num_frames, 2))
-    inside = np.empty(motion.num_frames)
-    for t in range(motion.num_frames):
-        data.qpos[:3], data.qpos[3:7] = motion.root_pos[t], motion.root_quat[t]
-        data.qpos[qpos_index] = motion.joint_pos[t]
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_comPos(model, data)
-        com[t] = data.subtree_com[0, :2]
-        # a capsule's segment ends (along its local z), widened by its radius below
-        half = data.geom_xmat[soles].reshape(-1, 3, 3)[:, :2, 2] * model.geom_size[soles, 1:2]
-        ends = np.concatenate([data.geom_xpos[soles, :2] + half, data.geom_xpos[soles, :2] - half])
-        hull = ConvexHull(ends)
-        # facet equations n.x + d <= 0 inside, |n| = 1: the nearest facet gives the distance
-        inside[t] = -(hull.equations[:, :2] @ com[t] + hull.equations[:, 2]).max() + model.geom_size[soles, 0].min()
-    return {"com": com, "inside": inside}
