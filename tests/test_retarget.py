@@ -79,15 +79,16 @@ def test_far_jump_lands_on_the_floor(far_jump):
 
 def test_bundled_sample_balances_on_the_g1():
     """Whenever the retargeted sample stands or moves slowly on both feet, the robot's centre of mass
-    is over its feet, at least 3 cm inside the support polygon, so tracking the reference does not start
-    by falling over. (The first synthetic sample crouched and landed with it 1.7 cm inside, at the heels.)"""
+    is over its feet, at least 4 cm inside the soles' outline (3 cm past the ends of the sole capsules'
+    centre-lines, which are 1 cm thick), so tracking the reference does not start by falling over. (The
+    first synthetic sample crouched and landed with it 1.7 cm inside, at the heels.)"""
     from pipeline.human.importers import load_human_motion
     from pipeline.human.sample import SAMPLE_PATH
 
     motion, report = retarget(load_human_motion(SAMPLE_PATH), RetargetConfig(), progress=False)
     balance = report["balance"]
     assert balance["frames_checked"] > 0.4 * motion.num_frames  # the crouch, the absorb and the stands
-    assert balance["com_inside_support_min_mm"] >= 30.0
+    assert balance["com_inside_support_min_mm"] >= 40.0
 
 
 def test_support_margin_sign():
