@@ -154,10 +154,13 @@ def test_export_variant_from_a_real_policy_folder(tmp_path):
                        out_dir=tmp_path / "export3")
 
 
-def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypatch):
-    """A policy trained with `env.action_offset: reference`: the exported graph adds the reference's
-    joints at the frame the env's step ends on (adaptive phase included) — same targets as the env."""
+@pytest.mark.parametrize("offset", ["reference", "feedforward"])
+def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypatch, offset):
+    """A policy trained with `env.action_offset: reference` or `feedforward`: the exported graph adds
+    that offset's per-frame joint targets at the frame the env's step ends on (adaptive phase
+    included) — same targets as the env."""
     from pipeline.envs.config import EnvConfig
+    from pipeline.envs.feedforward import zero_action_targets
     from pipeline.envs.tracking_env import TrackingEnv
     from pipeline.export.onnx_export import OUTPUT_NAMES, ReferenceOffset, onnx_session
 
@@ -165,16 +168,18 @@ def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypa
     cfg = load_robot_config()
     data = _tracking_data(wave=0.2)
     env = TrackingEnv(EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0,  # worlds at several ψ:
-                                           "action_offset": "reference", "sampling": {"mode": "uniform"}}), data, num_envs=4)
+                                           "action_offset": offset, "sampling": {"mode": "uniform"}}), data, num_envs=4)
     layout = observation_layout(cfg, history=5)
     assert layout["dim"] == env.actor_obs_dim
-    reference = ReferenceOffset.for_layout(data.motion.joint_pos, env.dphi, layout)
+    table = zero_action_targets(data.motion, offset, cfg)
+    reference = ReferenceOffset.for_layout(table, env.dphi, layout)
     module = DeployedPolicy(ComposedStandIn(layout["dim"], phase_rate=env.dphi), cfg.default_joint_pos,
                             cfg.action_scale, reference=reference)
     meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=data, obs_layout=layout,
-                          action_offset="reference")
-    assert meta["action_offset"] == "reference" and meta["outputs"]["joint_targets"].startswith("reference.joint_pos")
-    assert np.allclose(meta["reference"]["joint_pos"], data.motion.joint_pos)
+                          action_offset=offset)
+    assert meta["action_offset"] == offset and meta["outputs"]["joint_targets"].startswith("reference.joint_target")
+    assert np.allclose(meta["reference"]["joint_target"], table) and np.allclose(meta["reference"]["joint_pos"], data.motion.joint_pos)
+    assert (offset == "reference") == np.allclose(table, data.motion.joint_pos)
     result = export_folder(module, layout["dim"], meta, tmp_path / "export")
     session = onnx_session(result.onnx)
     sent = []

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pipeline.common.errors import PipelineInputError
 from pipeline.common.typed_config import replace_from_mapping
 
+ACTION_OFFSETS = ("feedforward", "reference", "default")  # what a zero action aims the joints at (EnvConfig)
 LOWER_BODY = ("pelvis", "left_hip", "left_knee", "left_ankle", "right_hip", "right_knee", "right_ankle")
 
 
@@ -200,13 +201,15 @@ class EnvConfig:
     # of jumping. Flights are left out because an edited landing may be out of reach from a state of
     # the unedited flight.
     rsi_frames: str = "stance"
-    # Joint targets = offset + action_scale · action. "reference": the reference's joints at the frame
-    # the step ends on; "default": the standing default pose, as the paper and BeyondMimic. Why
-    # reference: around the default pose a zero action stands the robot up out of the far jump's
-    # crouch, and within 20 CPU minutes policies never found the push-off (0 % success from t = 0,
-    # benchmarks/RESULTS.md); around the reference they start from its joint trajectory and learn
-    # the extra push. The exported graph adds the reference's joints itself (export/onnx_export.py).
-    action_offset: str = "reference"
+    # Joint targets = offset + action_scale · action. "feedforward": the reference's joints at the frame
+    # the step ends on, plus the PD actuators' feedforward (Kd q̇_ref + τ_ref) / Kp so that a zero action
+    # produces the reference's own torques (envs/feedforward.py); "reference": the reference's joints
+    # alone; "default": the standing default pose, as the paper and BeyondMimic. Around the default pose
+    # a zero action stands the robot up out of the far jump's crouch, and within 20 CPU minutes policies
+    # never found the push-off (0 % success from t = 0, benchmarks/RESULTS.md); around the bare
+    # reference joints the soft gains sag the crouch and brake the push-off, so the policy first has
+    # to learn to cancel its own actuators. The exported graph adds the offset itself (export/onnx_export.py).
+    action_offset: str = "feedforward"
     action_clip: float = 100.0
     physics_threads: int = 2
     torch_threads: int = 1  # 0: leave torch's setting alone; small per-step ops prefer 1 beside physics
@@ -234,8 +237,8 @@ class EnvConfig:
             bad("rsi_prob", "must be in [0, 1]")
         if self.rsi_frames not in ("stance", "keyframes"):
             bad("rsi_frames", f"must be 'stance' or 'keyframes', got {self.rsi_frames!r}")
-        if self.action_offset not in ("default", "reference"):
-            bad("action_offset", f"must be 'default' or 'reference', got {self.action_offset!r}")
+        if self.action_offset not in ACTION_OFFSETS:
+            bad("action_offset", f"must be one of {', '.join(ACTION_OFFSETS)}, got {self.action_offset!r}")
         if self.sampling.mode not in ("uniform", "adaptive", "curriculum", "sweep"):
             bad("sampling.mode", f"must be 'uniform', 'adaptive', 'curriculum' or 'sweep', got {self.sampling.mode!r}")
         if self.sampling.levels < 2:

@@ -22,6 +22,7 @@ import torch
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs import rewards as R
 from pipeline.envs.config import EnvConfig
+from pipeline.envs.feedforward import zero_action_targets
 from pipeline.envs.randomization import DomainRandomizer
 from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.torch_math import (
@@ -124,6 +125,8 @@ class TrackingEnv:
         self.ref_body_pos = self._tensor(m.body_pos)
         self.ref_body_quat = self._tensor(m.body_quat)
         self.ref_qvel = self._tensor(m.qvel())
+        targets = zero_action_targets(m, self.cfg.action_offset, self.robot, self.model)
+        self.joint_target_table = None if targets is None else self._tensor(targets)  # (T, J)
         self.ref_gravity_xy = projected_gravity(self.ref_root_quat)[:, :2].contiguous()  # for the tilt check
         root_q = self.ref_root_quat[:, None].expand(-1, m.body_pos.shape[1], -1)
         self.ref_local_pos = quat_rotate_inverse(root_q, self.ref_body_pos - self.ref_root_pos[:, None])
@@ -324,10 +327,11 @@ class TrackingEnv:
         self.episodes_terminated = torch.zeros((), dtype=torch.long, device=self.device)
 
     def _action_offset(self, frame: torch.Tensor) -> torch.Tensor:
-        """Joint targets at a zero action: the default pose, or the reference's joints at `frame`."""
-        if self.cfg.action_offset == "reference":
-            return self.ref_joint_pos[frame]
-        return self.default_joint_pos
+        """Joint targets at a zero action: the default pose, or the reference's joints at `frame`
+        (with the feedforward of envs/feedforward.py for "feedforward")."""
+        if self.cfg.action_offset == "default":
+            return self.default_joint_pos
+        return self.joint_target_table[frame]
 
     def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
         """One control step of every world; see the module docstring and docs/INTERFACES.md."""

@@ -30,6 +30,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from pipeline.envs.feedforward import zero_action_targets
 from pipeline.keyframes.tracking_data import TrackingData
 from pipeline.robot.g1 import RobotConfig
 
@@ -161,7 +162,8 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
                    terrain: dict | None = None, psi_grid_points: int = PSI_GRID_POINTS,
                    action_offset: str = "default") -> dict:
     """`action_offset`: what the policy's joint action is added to (`EnvConfig.action_offset`);
-    "reference" adds the reference's joints (`reference.joint_pos`) to the recorded formula."""
+    "reference" and "feedforward" add that offset's per-frame joint targets (`reference.joint_target`,
+    envs/feedforward.py) to the recorded formula."""
     motion = data.motion
     grid = _grid(data, psi_grid_points)
     frames = np.asarray(data.keyframe_frames, dtype=int)
@@ -171,10 +173,12 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
     qvel0 = motion.qvel()[0]
     reference = reference_metadata(data, grid)
     joint_targets = "default_joint_pos + action_scale * action"
-    if action_offset == "reference":
-        joint_targets = ("reference.joint_pos[frame_of_phase(phase + rate + clamp(phase_rate_offset))]"
+    if action_offset != "default":
+        joint_targets = ("reference.joint_target[frame_of_phase(phase + rate + clamp(phase_rate_offset))]"
                          " + action_scale * action")
-        reference["joint_pos"] = motion.joint_pos.tolist()  # (T, J), for reading; the graph holds it
+        # (T, J), for reading; the graph holds it
+        reference["joint_target"] = zero_action_targets(motion, action_offset, robot).tolist()
+        reference["joint_pos"] = motion.joint_pos.tolist()
     return {
         "metadata_version": METADATA_VERSION,
         "task": task,

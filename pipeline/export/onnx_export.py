@@ -21,6 +21,7 @@ from torch import nn
 
 from pipeline.common.atomic import atomic_dir
 from pipeline.common.errors import PipelineInputError
+from pipeline.envs.feedforward import zero_action_targets
 
 ONNX_NAME = "policy.onnx"
 METADATA_NAME = "policy.json"
@@ -37,8 +38,8 @@ class DeployedPolicy(nn.Module):
     `policy(obs)` returns the joint action a, or a tuple (a, Δφ^Δ) — the composed stage-2 module.
     `normalizer`, when given, maps raw observations to the policy's input (else the policy
     normalises itself). Joint targets = offset + action_scale · a, where the offset is the default
-    pose, or — for a policy trained with `env.action_offset: reference` — the reference's joints at
-    the frame the step ends on: round(φ'·(T − 1)) with φ' = φ + rate + clamp(Δφ^Δ, −0.75·rate, rate)
+    pose, or — for a policy trained with `env.action_offset: reference` or `feedforward` — that
+    offset's per-frame table (`zero_action_targets`) at the frame the step ends on: round(φ'·(T − 1)) with φ' = φ + rate + clamp(Δφ^Δ, −0.75·rate, rate)
     and φ read from the newest step of the raw observation, exactly as the env steps.
     """
 
@@ -77,9 +78,9 @@ class DeployedPolicy(nn.Module):
 
 @dataclass(frozen=True)
 class ReferenceOffset:
-    """What the graph needs to add the reference's joints to the action (see `DeployedPolicy`)."""
+    """What the graph needs to add the per-frame joint targets to the action (see `DeployedPolicy`)."""
 
-    joint_pos: np.ndarray  # (T, J) reference joint positions, action order
+    joint_pos: np.ndarray  # (T, J) joint targets at a zero action (`zero_action_targets`), action order
     phase_rate: float  # Δφ per control step
     phase_index: int  # where the newest step's phase sits in the raw observation
 
@@ -213,7 +214,8 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
                               terminations=terminations, terrain=terrain, action_offset=meta["action_offset"])
     metadata["policy_stage"] = meta.get("stage")
     reference = None
-    if meta["action_offset"] == "reference":
-        reference = ReferenceOffset.for_layout(data.motion.joint_pos, metadata["phase"]["rate"], layout)
+    if meta["action_offset"] != "default":
+        reference = ReferenceOffset.for_layout(zero_action_targets(data.motion, meta["action_offset"], robot),
+                                               metadata["phase"]["rate"], layout)
     module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale, reference=reference)
     return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir)

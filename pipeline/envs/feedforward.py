@@ -1,0 +1,103 @@
+"""Joint targets that let the G1's PD actuators produce a reference motion's own torques.
+
+A position actuator applies τ = Kp (q* − q) − Kd q̇. Aimed at the reference's joints (q* = q_ref) it
+leaves two errors that a tracking policy would otherwise have to learn to cancel at every step:
+  * the damping term brakes every fast motion: Kd/Kp = 2ζ/ω, 64 ms of lag for the G1's gains, i.e.
+    0.6 rad on a knee extending at 10 rad/s in a push-off;
+  * nothing holds the robot up against gravity or drives the reference's accelerations, so the
+    soft gains (10 Hz) sag the crouch and never reach the take-off speed.
+With the feedforward target
+
+    q* = q_ref + (Kd q̇_ref + τ_ref) / Kp
+
+the actuator applies Kp (q_ref − q) + Kd (q̇_ref − q̇) + τ_ref: a PD on both position and velocity
+errors plus the reference's joint torques. τ_ref is the reference's inverse dynamics (mj_inverse with
+contacts disabled): the floating base's share of it — the wrench that gravity and the motion ask of
+the ground — is carried by the feet that stand on the ground (least-norm 6-D wrenches at the ankle
+bodies), and the joints supply the rest through the feet's Jacobian. Torques are clipped to the motors'
+effort limits. In the air no foot can carry anything and the joints get their own rows of τ alone.
+
+On the shared far jump, replaying the reference open-loop (a zero action) around these targets crosses
+the take-off keyframe 0.15 m from it and lands 0.24 m short; around the bare reference joints the
+robot sags 0.37 m low by the take-off and falls before the landing (benchmarks/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from pipeline.motion.motion import Motion
+from pipeline.robot.g1 import RobotConfig, build_model, load_robot_config
+
+# A foot whose lowest sole point is this close to the floor carries load (the retarget's contact
+# labelling uses 6 cm with a speed test; lower here so a foot leaving the ground stops carrying).
+CONTACT_HEIGHT_M = 0.04
+FOOT_BODIES = ("left_ankle_roll_link", "right_ankle_roll_link")
+
+
+def reference_joint_torques(motion: Motion, robot: RobotConfig | None = None,
+                            model: mujoco.MjModel | None = None) -> np.ndarray:
+    """(T, J) joint torques (N·m) that produce `motion` with its base carried by the feet in contact."""
+    from pipeline.keyframes.select import foot_height_and_speed
+
+    robot = robot or load_robot_config()
+    model = model or build_model()
+    model = _without_contacts(model)
+    data = mujoco.MjData(model)
+    qpos, qvel = motion.qpos(), motion.qvel()
+    qacc = np.gradient(qvel, motion.dt, axis=0)
+    foot_height, _ = foot_height_and_speed(motion)
+    feet = [model.body(name).id for name in FOOT_BODIES]
+    nv = model.nv
+    jac_pos, jac_rot = np.zeros((3, nv)), np.zeros((3, nv))
+    torques = np.zeros((motion.num_frames, nv - 6))
+    for t in range(motion.num_frames):
+        data.qpos[:], data.qvel[:], data.qacc[:] = qpos[t], qvel[t], qacc[t]
+        mujoco.mj_inverse(model, data)
+        generalized = data.qfrc_inverse.copy()
+        rows = []
+        for foot, height in zip(feet, foot_height[t]):
+            if height < CONTACT_HEIGHT_M:
+                mujoco.mj_jacBody(model, data, jac_pos, jac_rot, foot)
+                rows.append(np.vstack([jac_pos, jac_rot]))
+        if rows:
+            jac = np.vstack(rows)  # (6·feet, nv)
+            wrench, *_ = np.linalg.lstsq(jac[:, :6].T, generalized[:6], rcond=None)
+            torques[t] = generalized[6:] - jac[:, 6:].T @ wrench
+        else:
+            torques[t] = generalized[6:]
+    return np.clip(torques, -robot.effort_limit, robot.effort_limit)
+
+
+def feedforward_joint_targets(motion: Motion, robot: RobotConfig | None = None,
+                              model: mujoco.MjModel | None = None) -> np.ndarray:
+    """(T, J) q_ref + (Kd q̇_ref + τ_ref) / Kp: the actuator targets at a zero action (module docstring)."""
+    robot = robot or load_robot_config()
+    if tuple(motion.joint_names) != tuple(robot.joint_names):
+        motion = motion.reorder_joints(robot.joint_names)
+    torques = reference_joint_torques(motion, robot, model)
+    return motion.joint_pos + (robot.kd * motion.joint_vel + torques) / robot.kp
+
+
+def _without_contacts(model: mujoco.MjModel) -> mujoco.MjModel:
+    """A copy whose inverse dynamics ignore contacts (the feet's wrenches are solved for instead)."""
+    import copy
+
+    model = copy.copy(model)
+    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
+    return model
+
+
+def zero_action_targets(motion: Motion, action_offset: str, robot: RobotConfig | None = None,
+                        model: mujoco.MjModel | None = None) -> np.ndarray | None:
+    """(T, J) per-frame joint targets of a zero action for `EnvConfig.action_offset` ("reference":
+    the reference's joints; "feedforward": `feedforward_joint_targets`); None for "default", whose
+    target is the standing pose at every frame. The env and the exported graph both read this table."""
+    if action_offset == "default":
+        return None
+    if action_offset == "reference":
+        return np.asarray(motion.joint_pos)
+    if action_offset == "feedforward":
+        return feedforward_joint_targets(motion, robot, model)
+    raise ValueError(f"unknown action_offset {action_offset!r}")
