@@ -24,6 +24,8 @@ robot sags 0.37 m low by the take-off and falls before the landing (benchmarks/R
 
 from __future__ import annotations
 
+import copy
+
 import mujoco
 import numpy as np
 
@@ -33,7 +35,6 @@ from pipeline.robot.g1 import RobotConfig, build_model, load_robot_config
 # A foot whose lowest sole point is this close to the floor carries load (the retarget's contact
 # labelling uses 6 cm with a speed test; lower here so a foot leaving the ground stops carrying).
 CONTACT_HEIGHT_M = 0.04
-FOOT_BODIES = ("left_ankle_roll_link", "right_ankle_roll_link")
 
 
 def reference_joint_torques(motion: Motion, robot: RobotConfig | None = None,
@@ -48,7 +49,7 @@ def reference_joint_torques(motion: Motion, robot: RobotConfig | None = None,
     qpos, qvel = motion.qpos(), motion.qvel()
     qacc = np.gradient(qvel, motion.dt, axis=0)
     foot_height, _ = foot_height_and_speed(motion)
-    feet = [model.body(name).id for name in FOOT_BODIES]
+    feet = [model.body(robot.feet[side]["body"]).id for side in ("left", "right")]  # foot_height's order
     nv = model.nv
     jac_pos, jac_rot = np.zeros((3, nv)), np.zeros((3, nv))
     torques = np.zeros((motion.num_frames, nv - 6))
@@ -72,18 +73,15 @@ def reference_joint_torques(motion: Motion, robot: RobotConfig | None = None,
 
 def feedforward_joint_targets(motion: Motion, robot: RobotConfig | None = None,
                               model: mujoco.MjModel | None = None) -> np.ndarray:
-    """(T, J) q_ref + (Kd q̇_ref + τ_ref) / Kp: the actuator targets at a zero action (module docstring)."""
+    """(T, J) q_ref + (Kd q̇_ref + τ_ref) / Kp: the actuator targets at a zero action (module docstring).
+    `motion`'s joints in the robot's order (`zero_action_targets` puts them there)."""
     robot = robot or load_robot_config()
-    if tuple(motion.joint_names) != tuple(robot.joint_names):
-        motion = motion.reorder_joints(robot.joint_names)
     torques = reference_joint_torques(motion, robot, model)
     return motion.joint_pos + (robot.kd * motion.joint_vel + torques) / robot.kp
 
 
 def _without_contacts(model: mujoco.MjModel) -> mujoco.MjModel:
     """A copy whose inverse dynamics ignore contacts (the feet's wrenches are solved for instead)."""
-    import copy
-
     model = copy.copy(model)
     model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
     return model
@@ -93,9 +91,13 @@ def zero_action_targets(motion: Motion, action_offset: str, robot: RobotConfig |
                         model: mujoco.MjModel | None = None) -> np.ndarray | None:
     """(T, J) per-frame joint targets of a zero action for `EnvConfig.action_offset` ("reference":
     the reference's joints; "feedforward": `feedforward_joint_targets`); None for "default", whose
-    target is the standing pose at every frame. The env and the exported graph both read this table."""
+    target is the standing pose at every frame. Joints in the robot's (action) order. The env and the
+    exported graph both read this table."""
     if action_offset == "default":
         return None
+    robot = robot or load_robot_config()
+    if tuple(motion.joint_names) != tuple(robot.joint_names):
+        motion = motion.reorder_joints(robot.joint_names)
     if action_offset == "reference":
         return np.asarray(motion.joint_pos)
     if action_offset == "feedforward":

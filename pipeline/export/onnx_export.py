@@ -21,7 +21,6 @@ from torch import nn
 
 from pipeline.common.atomic import atomic_dir
 from pipeline.common.errors import PipelineInputError
-from pipeline.envs.feedforward import zero_action_targets
 
 ONNX_NAME = "policy.onnx"
 METADATA_NAME = "policy.json"
@@ -39,8 +38,9 @@ class DeployedPolicy(nn.Module):
     `normalizer`, when given, maps raw observations to the policy's input (else the policy
     normalises itself). Joint targets = offset + action_scale · a, where the offset is the default
     pose, or — for a policy trained with `env.action_offset: reference` or `feedforward` — that
-    offset's per-frame table (`zero_action_targets`) at the frame the step ends on: round(φ'·(T − 1)) with φ' = φ + rate + clamp(Δφ^Δ, −0.75·rate, rate)
-    and φ read from the newest step of the raw observation, exactly as the env steps.
+    offset's per-frame table (envs/feedforward.py: `zero_action_targets`) at the frame the step ends
+    on: round(φ'·(T − 1)) with φ' = φ + rate + clamp(Δφ^Δ, −0.75·rate, rate) and φ read from the
+    newest step of the raw observation, exactly as the env steps.
     """
 
     def __init__(self, policy: nn.Module, default_joint_pos, action_scale, normalizer: nn.Module | None = None,
@@ -214,8 +214,7 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
                               terminations=terminations, terrain=terrain, action_offset=meta["action_offset"])
     metadata["policy_stage"] = meta.get("stage")
     reference = None
-    if meta["action_offset"] != "default":
-        reference = ReferenceOffset.for_layout(zero_action_targets(data.motion, meta["action_offset"], robot),
-                                               metadata["phase"]["rate"], layout)
+    if meta["action_offset"] != "default":  # the table policy.json records (build_metadata)
+        reference = ReferenceOffset.for_layout(metadata["reference"]["joint_target"], metadata["phase"]["rate"], layout)
     module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale, reference=reference)
     return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir)
