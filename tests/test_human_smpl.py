@@ -128,9 +128,39 @@ def test_sample_far_jump_physics():
     assert np.all(sole[ground] < 0.09) and np.all(sole[ground] > -0.005)
     flight = slice(clip.takeoff_frame + 1, clip.touchdown_frame)
     assert sole[flight].max() > 0.2
-    # Ballistic pelvis: constant horizontal velocity and vertical acceleration -g in flight.
+    # Ballistic centre of mass: constant horizontal velocity and vertical acceleration -g in flight.
     dt = 1.0 / m.fps
-    pelvis = pos[clip.takeoff_frame : clip.touchdown_frame + 1, 0]
-    acc = np.diff(pelvis, 2, axis=0) / dt**2
+    com = smpl.center_of_mass(pos[clip.takeoff_frame : clip.touchdown_frame + 1])
+    acc = np.diff(com, 2, axis=0) / dt**2
     np.testing.assert_allclose(acc[:, 2], -9.81, atol=0.05)
     np.testing.assert_allclose(acc[:, :2], 0.0, atol=0.05)
+
+
+def test_sample_landing_is_balanced():
+    """From touch-down on, the feet stay put and the zero-moment point of the centre of mass's path
+    (x - z x'' / (g + z'')) stays between the ankles and the balls of the feet (SMPL's foot joints),
+    well inside the soles: the landing brakes the flight's speed without tipping. (The first samples
+    stopped the body at touch-down and restarted it, with the point 0.4 m outside the feet.)"""
+    clip = make_sample_clip()
+    pos = load_human_motion(SAMPLE_PATH).joint_pos
+    landed = slice(clip.touchdown_frame, None)
+    feet = pos[landed][:, [7, 8, 10, 11]]
+    assert np.abs(feet - feet[0]).max() < 1e-3
+    dt = 1.0 / clip.fps
+    com = smpl.center_of_mass(pos)
+    acc = np.gradient(np.gradient(com, dt, axis=0), dt, axis=0)
+    zmp = com[:, 0] - com[:, 2] * acc[:, 0] / (9.81 + acc[:, 2])
+    assert np.all(zmp[landed] > feet[:, :2, 0].max(axis=1))
+    assert np.all(zmp[landed] < feet[:, 2:, 0].min(axis=1))
+    # ... and the flight arrives fast: touch-down velocity is the flight's, not zero
+    assert np.gradient(com[:, 0], dt)[clip.touchdown_frame] > 1.0
+
+
+def test_center_of_mass_of_the_standing_body():
+    """The neutral body standing at rest: centre of mass on the mid-line, at 55-58 % of the standing
+    height above the soles (the anthropometric figure for adults)."""
+    rest = smpl.NEUTRAL_REST_JOINTS
+    com = smpl.center_of_mass(rest[None])[0]
+    assert abs(com[0]) < 0.01
+    height_above_sole = (com[1] - smpl.NEUTRAL_SOLE_Y) / smpl.NEUTRAL_HEIGHT
+    assert 0.53 <= height_above_sole <= 0.58

@@ -6,15 +6,17 @@ clone without the paper's data. `python -m pipeline.human.sample [OUT.npz]` rewr
 
 How it is made:
   * joint rotations: a handful of scalar pose parameters (pelvis pitch, hip/knee/ankle flexion,
-    spine lean, arm swing, elbow bend) keyed at stand, crouch, rise, take-off, tuck, landing,
+    spine lean, arm swing, elbow bend) keyed at stand, crouch, rise, take-off, tuck, touch-down,
     absorb and recover, interpolated with monotone cubics (no overshoot), turned into SMPL
-    local axis-angles of a left-right symmetric body;
-  * root translation, by phase: on the ground the feet are pinned (their mean x stays where it
-    touched down, the lowest sole point stays on the floor z = 0), so the body moves only by the
-    pose; in flight the pelvis follows a true projectile, x(t) = x0 + vx t,
-    z(t) = z0 + vz t - g t^2 / 2 with g = 9.81 m/s^2, whose velocity is solved from the take-off
-    and touch-down pelvis positions and the flight time;
-  * the feet land `JUMP_DISTANCE_M` ahead of where they took off.
+    local axis-angles of a body whose two sides move alike;
+  * before take-off the feet are pinned (their mean x stays put, the lowest sole point stays on the
+    floor z = 0), so the body moves by the pose alone;
+  * in the air the whole-body centre of mass (`smpl.center_of_mass`) follows a true projectile,
+    x(t) = x0 + vx t, z(t) = z0 + vz t - g t^2 / 2 with g = 9.81 m/s^2;
+  * after touch-down the centre of mass is planned so the landing can be done without tipping: its
+    zero-moment point stays over the landed feet (`_balanced_landing`), which fixes how far behind
+    the feet it touches down for the flight's speed; the legs are then solved so both feet stay
+    flat where they landed, `JUMP_DISTANCE_M` ahead of where they took off.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
+from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
 from pipeline import REPO_ROOT
 from pipeline.common import quat
@@ -32,11 +34,14 @@ from pipeline.human import smpl
 
 SAMPLE_PATH = REPO_ROOT / "data" / "sample" / "far_jump_synthetic.npz"
 FPS = 30.0
-DURATION_S = 2.6
-TAKEOFF_S = 0.9
-TOUCHDOWN_S = 1.35
+DURATION_S = 2.9
+TAKEOFF_S = 1.2
+TOUCHDOWN_S = 49.0 / 30.0  # a frame's time: the touch-down key is where the landing's legs are solved
 JUMP_DISTANCE_M = 1.0
 GRAVITY = 9.81
+SOFT_KNEES_M = 0.01
+TOUCHDOWN_DROP_M = 0.10  # centre of mass below standing height at touch-down
+ABSORB_DEPTH_M = 0.30  # how far the centre of mass sinks below standing height while absorbing the landing
 
 # Pose parameters (radians), SMPL body frame (x left, y up, z front): + about x leans the trunk
 # forward / bends the knee / swings the arm back; hip flexion (thigh forward) is negative.
@@ -45,16 +50,22 @@ GRAVITY = 9.81
 # tracking policy falls over backwards (tests/test_retarget.py::test_bundled_sample_balances_on_the_g1).
 PARAMS = ("pelvis_pitch", "spine_lean", "hip_flex", "knee_flex", "ankle_flex", "arm_swing", "elbow_flex")
 KEYFRAMES: list[tuple[float, dict[str, float]]] = [
-    (0.00, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand
-    (0.45, dict(pelvis_pitch=0.55, spine_lean=0.25, hip_flex=-1.05, knee_flex=1.65, ankle_flex=-0.75, arm_swing=1.0, elbow_flex=0.2)),  # crouch, arms back
-    (0.73, dict(pelvis_pitch=0.75, spine_lean=0.25, hip_flex=-0.75, knee_flex=1.25, ankle_flex=-0.50, arm_swing=0.2, elbow_flex=0.2)),  # rise, leaning into the jump
-    (0.96, dict(pelvis_pitch=0.45, spine_lean=0.10, hip_flex=0.20, knee_flex=0.05, ankle_flex=0.55, arm_swing=-1.9, elbow_flex=0.2)),  # take-off: extended, arms up
-    (1.10, dict(pelvis_pitch=0.30, spine_lean=0.15, hip_flex=-1.40, knee_flex=1.50, ankle_flex=0.10, arm_swing=-1.3, elbow_flex=0.4)),  # tuck
-    (1.33, dict(pelvis_pitch=0.35, spine_lean=0.25, hip_flex=-0.60, knee_flex=0.45, ankle_flex=-0.10, arm_swing=-0.6, elbow_flex=0.3)),  # touch-down: legs reach
-    (1.70, dict(pelvis_pitch=0.60, spine_lean=0.30, hip_flex=-1.30, knee_flex=1.85, ankle_flex=-0.80, arm_swing=-0.9, elbow_flex=0.3)),  # absorb
-    (2.30, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # recover
-    (2.60, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand
+    (0.00, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand ...
+    (0.30, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # ... still
+    (0.75, dict(pelvis_pitch=0.55, spine_lean=0.25, hip_flex=-1.05, knee_flex=1.65, ankle_flex=-0.75, arm_swing=1.0, elbow_flex=0.2)),  # crouch, arms back
+    (1.03, dict(pelvis_pitch=0.75, spine_lean=0.25, hip_flex=-0.75, knee_flex=1.25, ankle_flex=-0.50, arm_swing=0.2, elbow_flex=0.2)),  # rise, leaning into the jump
+    (1.26, dict(pelvis_pitch=0.45, spine_lean=0.10, hip_flex=0.20, knee_flex=0.05, ankle_flex=0.55, arm_swing=-1.9, elbow_flex=0.2)),  # take-off: extended, arms up
+    (1.40, dict(pelvis_pitch=0.30, spine_lean=0.15, hip_flex=-1.40, knee_flex=1.50, ankle_flex=0.10, arm_swing=-1.3, elbow_flex=0.4)),  # tuck
+    # From the touch-down on, the legs are solved (feet pinned, see make_sample_clip): the leg values
+    # of these keys only shape the flight's swing into the touch-down.
+    (TOUCHDOWN_S, dict(pelvis_pitch=0.35, spine_lean=0.25, hip_flex=-0.60, knee_flex=0.45, ankle_flex=-0.10, arm_swing=-0.6, elbow_flex=0.3)),  # touch-down: legs reach
+    (2.00, dict(pelvis_pitch=0.60, spine_lean=0.30, hip_flex=-1.30, knee_flex=1.85, ankle_flex=-0.80, arm_swing=-0.9, elbow_flex=0.3)),  # absorb
+    (2.60, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # recover
+    (2.90, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand
 ]
+TOUCHDOWN_KEY = 6
+LEG_PARAMS = ("hip_flex", "knee_flex", "ankle_flex")
+SIDES = ("left", "right")
 # The body frame's front (+z) to world +x, its up (+y) to world +z, its left (+x) to world +y.
 BODY_TO_WORLD = quat.from_matrix(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
 J = {name: i for i, name in enumerate(smpl.SMPL_JOINT_NAMES)}
@@ -69,13 +80,24 @@ class SampleClip:
     touchdown_frame: int
 
 
-def _pose_tracks(times: np.ndarray) -> dict[str, np.ndarray]:
+def _pose_tracks(times: np.ndarray, touchdown_legs: dict | None = None) -> dict[str, np.ndarray]:
+    """The keyed pose parameters at `times`, the legs' per side ("left_hip_flex", ...): the rest
+    template is not quite symmetric, so pinning both feet needs slightly different angles.
+    `touchdown_legs` {side: (hip, knee flexion)} replaces the touch-down key's legs (flat feet)."""
     key_t = np.array([t for t, _ in KEYFRAMES])
-    return {p: PchipInterpolator(key_t, [k[p] for _, k in KEYFRAMES])(times) for p in PARAMS}
+    tracks = {p: PchipInterpolator(key_t, [k[p] for _, k in KEYFRAMES])(times) for p in PARAMS if p not in LEG_PARAMS}
+    for side in SIDES:
+        keys = [dict(k) for _, k in KEYFRAMES]
+        if touchdown_legs is not None:
+            hip, knee = touchdown_legs[side]
+            keys[TOUCHDOWN_KEY].update(hip_flex=hip, knee_flex=knee, ankle_flex=-(hip + knee))
+        for p in LEG_PARAMS:
+            tracks[f"{side}_{p}"] = PchipInterpolator(key_t, [k[p] for k in keys])(times)
+    return tracks
 
 
 def _rotvecs(tracks: dict[str, np.ndarray]) -> np.ndarray:
-    frames = len(tracks["hip_flex"])
+    frames = len(tracks["pelvis_pitch"])
     rv = np.zeros((frames, 22, 3))
 
     def about_x(angle):
@@ -86,10 +108,10 @@ def _rotvecs(tracks: dict[str, np.ndarray]) -> np.ndarray:
     for spine in ("spine1", "spine2", "spine3"):
         rv[:, J[spine]] = about_x(tracks["spine_lean"] / 3.0)
     # The hips also undo the pelvis pitch so hip_flex is the thigh's angle to the vertical.
-    for side in ("left", "right"):
-        rv[:, J[f"{side}_hip"]] = about_x(tracks["hip_flex"] - tracks["pelvis_pitch"])
-        rv[:, J[f"{side}_knee"]] = about_x(tracks["knee_flex"])
-        rv[:, J[f"{side}_ankle"]] = about_x(tracks["ankle_flex"])
+    for side in SIDES:
+        rv[:, J[f"{side}_hip"]] = about_x(tracks[f"{side}_hip_flex"] - tracks["pelvis_pitch"])
+        rv[:, J[f"{side}_knee"]] = about_x(tracks[f"{side}_knee_flex"])
+        rv[:, J[f"{side}_ankle"]] = about_x(tracks[f"{side}_ankle_flex"])
     # Arms: from the T-pose down to the sides (about the body z), then swung about x.
     for side, down in (("left", -1.35), ("right", 1.35)):
         swing = quat.from_axis_angle(about_x(tracks["arm_swing"] - tracks["spine_lean"] - tracks["pelvis_pitch"]))
@@ -101,34 +123,151 @@ def _rotvecs(tracks: dict[str, np.ndarray]) -> np.ndarray:
     return rv
 
 
+def _pose_only_fk(tracks: dict[str, np.ndarray], rest: np.ndarray) -> np.ndarray:
+    """Joint positions (T, 22, 3) relative to the SMPL origin (trans = 0)."""
+    rv = _rotvecs(tracks)
+    return smpl.forward_kinematics(rv, np.zeros((len(rv), 3)), rest)[0]
+
+
+def _sole_height(pos: np.ndarray, clearance: dict[str, float]) -> np.ndarray:
+    return np.minimum(pos[:, [7, 8], 2].min(1) - clearance["ankle"], pos[:, [10, 11], 2].min(1) - clearance["foot"])
+
+
+def _feet_x(pos: np.ndarray) -> np.ndarray:
+    return pos[:, [7, 8, 10, 11], 0].mean(axis=1)
+
+
+def _set_legs(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, hip: np.ndarray, knee: np.ndarray) -> None:
+    """One leg's angles on `frames`, with the ankle keeping the foot flat (its rest pitch)."""
+    tracks[f"{side}_hip_flex"][frames] = hip
+    tracks[f"{side}_knee_flex"][frames] = knee
+    tracks[f"{side}_ankle_flex"][frames] = -(hip + knee)  # all three turn about the same axis
+
+
+def _solve_leg(tracks, frames, side, trans, ankle_target, rest, iterations=12):
+    """Hip and knee flexion of one leg on `frames` that put its ankle at `ankle_target` (F, 3; x and z
+    are matched) for the given root translations: Newton's method with a finite-difference
+    Jacobian, all frames at once."""
+    ankle_joint = J[f"{side}_ankle"]
+    q = np.stack([tracks[f"{side}_hip_flex"][frames], tracks[f"{side}_knee_flex"][frames]], axis=-1)
+
+    def ankle(qs):
+        sub = {k: v[frames].copy() for k, v in tracks.items()}
+        _set_legs(sub, slice(None), side, qs[:, 0], qs[:, 1])
+        return (_pose_only_fk(sub, rest)[:, ankle_joint] + trans)[:, [0, 2]]
+
+    goal = ankle_target[:, [0, 2]]
+    for _ in range(iterations):
+        residual = ankle(q) - goal
+        jac = np.empty((len(frames), 2, 2))
+        for j in range(2):
+            dq = np.zeros(2)
+            dq[j] = 1e-5
+            jac[:, :, j] = (ankle(q + dq) - goal - residual) / 1e-5
+        q = q - np.linalg.solve(jac, residual[..., None])[..., 0]
+    miss = np.abs(ankle(q) - goal).max()
+    if miss > 1e-4:  # only the authoring constants can cause this
+        raise ValueError(f"sample landing: the {side} leg cannot reach its pinned foot (miss {miss:.3f} m)")
+    return q[:, 0], q[:, 1]
+
+
+def _balanced_landing(height, times, x_takeoff: float, x_rest: float, flight_time: float):
+    """The centre of mass's horizontal path after touch-down (at times[0]) and the flight's speed vx.
+
+    The zero-moment point is held at x_rest, over the middle of the landed feet, so the robot can
+    do it without tipping: x'' = (g + z'') / z (x - x_rest), an inverted pendulum of the landing's own
+    height z(t). Of the touch-down points D behind x_rest (reached by a flight from x_takeoff with
+    vx = (x_rest - D - x_takeoff) / T), too near ones overshoot x_rest and too far ones fall back:
+    the one that comes to rest is found by bisection.
+    """
+    steps_per_frame = 20
+    dt = (times[1] - times[0]) / steps_per_frame
+    fine = times[0] + dt * np.arange((len(times) - 1) * steps_per_frame + 1)
+    stiffness = (GRAVITY + height(fine, 2)) / height(fine)
+
+    def integrate(distance):
+        x, v = -distance, (x_rest - distance - x_takeoff) / flight_time
+        path = np.empty(len(fine))
+        for i, k in enumerate(stiffness):
+            path[i] = x
+            v += k * x * dt
+            x += v * dt
+        return path, v
+
+    near, far = 0.0, x_rest - x_takeoff
+    for _ in range(60):
+        distance = 0.5 * (near + far)
+        path, _ = integrate(distance)
+        if path.max() > 0.0:
+            near = distance  # overshot
+        else:
+            far = distance
+    path, _ = integrate(distance)
+    return x_rest + path[::steps_per_frame], (x_rest - distance - x_takeoff) / flight_time
+
+
 def make_sample_clip() -> SampleClip:
     frames = int(round(DURATION_S * FPS)) + 1
     times = np.arange(frames) / FPS
-    rv = _rotvecs(_pose_tracks(times))
-    rest = smpl.rest_joints(None)
-    clearance = smpl.sole_clearance(rest)
-    # Pose-only FK (trans = 0): where joints sit relative to the SMPL origin.
-    pos, _ = smpl.forward_kinematics(rv, np.zeros((frames, 3)), rest)
-    sole = np.minimum(pos[:, [7, 8], 2].min(1) - clearance["ankle"], pos[:, [10, 11], 2].min(1) - clearance["foot"])
-    foot_x = pos[:, [7, 8, 10, 11], 0].mean(axis=1)
-
     takeoff = int(round(TAKEOFF_S * FPS))
     touchdown = int(round(TOUCHDOWN_S * FPS))
-    trans = np.zeros((frames, 3))
-    trans[:, 2] = -sole  # ground phases: the lowest sole on the floor
-    trans[: takeoff + 1, 0] = foot_x[0] - foot_x[: takeoff + 1]  # feet stay where they stand
-    trans[touchdown:, 0] = foot_x[0] + JUMP_DISTANCE_M - foot_x[touchdown:]  # ... and where they land
-    # Flight: a projectile between the take-off and touch-down root positions.
     flight_time = (touchdown - takeoff) / FPS
-    start, end = trans[takeoff], trans[touchdown]
-    velocity = (end - start) / flight_time
-    velocity[2] += 0.5 * GRAVITY * flight_time
+    tracks = _pose_tracks(times)
+    rest = smpl.rest_joints(None)
+    clearance = smpl.sole_clearance(rest)
+    pos = _pose_only_fk(tracks, rest)
+    trans = np.zeros((frames, 3))
+
+    # Before take-off: the feet stand still and the lowest sole is on the floor; the pose moves the body.
+    before = np.arange(takeoff + 1)
+    trans[before, 2] = -_sole_height(pos[before], clearance)
+    trans[before, 0] = _feet_x(pos[:1])[0] - _feet_x(pos[before])
+    com_takeoff = smpl.center_of_mass(pos[takeoff] + trans[takeoff])
+
+    # Where the body comes to rest: the final pose standing with its feet JUMP_DISTANCE_M ahead.
+    land_feet_x = _feet_x(pos[:1])[0] + trans[0, 0] + JUMP_DISTANCE_M
+    # (Knees a little soft, SOFT_KNEES_M lower: straight legs are where the leg solve below is singular.)
+    com_rest = smpl.center_of_mass(pos[-1]) + np.array(
+        [land_feet_x - _feet_x(pos[-1:])[0], 0.0, -_sole_height(pos[-1:], clearance)[0] - SOFT_KNEES_M])
+    # The landing's height: the centre of mass touches down TOUCHDOWN_DROP_M below standing height,
+    # still falling at the flight's speed, sinks to ABSORB_DEPTH_M below it and rises back.
+    com_touchdown_z = com_rest[2] - TOUCHDOWN_DROP_M
+    vz0 = (com_touchdown_z - com_takeoff[2]) / flight_time + 0.5 * GRAVITY * flight_time
+    absorb_t, recover_t = KEYFRAMES[-3][0], KEYFRAMES[-2][0]
+    height = CubicHermiteSpline(
+        [times[touchdown], absorb_t, recover_t, times[-1] + 1e-9],
+        [com_touchdown_z, com_rest[2] - ABSORB_DEPTH_M, com_rest[2], com_rest[2]],
+        [vz0 - GRAVITY * flight_time, 0.0, 0.0, 0.0])
+    after = np.arange(touchdown, frames)
+    landing_x, vx = _balanced_landing(height, times[after], com_takeoff[0], com_rest[0], flight_time)
+
+    com = np.zeros((frames, 3))
+    com[:, 1] = com_takeoff[1]  # straight ahead
     tau = (np.arange(takeoff, touchdown + 1) - takeoff) / FPS
-    flight = start + velocity * tau[:, None]
-    flight[:, 2] -= 0.5 * GRAVITY * tau**2
-    trans[takeoff : touchdown + 1] = flight
+    com[takeoff : touchdown + 1, 0] = com_takeoff[0] + vx * tau
+    com[takeoff : touchdown + 1, 2] = com_takeoff[2] + vz0 * tau - 0.5 * GRAVITY * tau**2
+    com[after, 0] = landing_x
+    com[after, 2] = height(times[after])
+
+    # The legs of the landing reach the pinned feet from wherever the planned body is; the touch-down
+    # key takes those legs so the flight's leg swing ends in them. The body's translation depends on
+    # the legs (a third of the mass), so alternate a few times.
+    # Each ankle where the final standing pose has it.
+    stand = pos[-1:] + np.array([land_feet_x - _feet_x(pos[-1:])[0], 0.0, -_sole_height(pos[-1:], clearance)[0]])
+    ankle_targets = {side: np.repeat(stand[:, J[f"{side}_ankle"]], len(after), axis=0) for side in SIDES}
+    airborne = np.arange(takeoff + 1, touchdown)
+    legs = None
+    for iteration in range(6):
+        tracks = _pose_tracks(times, None if legs is None else {side: (h[0], k[0]) for side, (h, k) in legs.items()})
+        for side, (hip, knee) in (legs or {}).items():
+            _set_legs(tracks, after, side, hip, knee)
+        pos = _pose_only_fk(tracks, rest)
+        trans[airborne] = com[airborne] - smpl.center_of_mass(pos[airborne])
+        trans[after] = com[after] - smpl.center_of_mass(pos[after])
+        if iteration < 5:
+            legs = {side: _solve_leg(tracks, after, side, trans[after], ankle_targets[side], rest) for side in SIDES}
     trans[:, 0] -= trans[0, 0]
-    return SampleClip(rv.reshape(frames, 66), trans, FPS, takeoff, touchdown)
+    return SampleClip(_rotvecs(tracks).reshape(frames, 66), trans, FPS, takeoff, touchdown)
 
 
 def write_sample(path: str | Path = SAMPLE_PATH) -> Path:

@@ -195,7 +195,31 @@ def forward_kinematics(
     return pos, quat.normalize(rot)
 
 
+# Segment masses as fractions of body mass (de Leva 1996, adult male, rounded) and where each sits:
+# halfway between two joints (one joint: at it). Good to a centimetre or two, which is what a
+# whole-body centre of mass of a skeleton without a mesh can be.
+SEGMENT_MASSES: tuple[tuple[float, tuple[str, ...]], ...] = (
+    (0.112, ("pelvis", "left_hip", "right_hip")),  # lower trunk
+    (0.163, ("spine1", "spine2")),  # middle trunk
+    (0.160, ("spine3", "neck")),  # upper trunk
+    (0.069, ("head",)),
+    *[(mass, tuple(f"{side}_{joint}" for joint in joints))
+      for side in ("left", "right")
+      for mass, joints in ((0.142, ("hip", "knee")), (0.043, ("knee", "ankle")), (0.014, ("ankle", "foot")),
+                           (0.027, ("shoulder", "elbow")), (0.016, ("elbow", "wrist")), (0.006, ("wrist",)))],
+)
+
+
+def center_of_mass(joint_pos: np.ndarray) -> np.ndarray:
+    """Whole-body centre of mass (..., 3) of joint positions (..., 22, 3), from `SEGMENT_MASSES`."""
+    index = {name: i for i, name in enumerate(SMPL_JOINT_NAMES)}
+    total = np.zeros(joint_pos.shape[:-2] + (3,))
+    for mass, joints in SEGMENT_MASSES:
+        total += mass * joint_pos[..., [index[j] for j in joints], :].mean(axis=-2)
+    return total / sum(mass for mass, _ in SEGMENT_MASSES)
+
+
 __all__ = [
-    "NEUTRAL_REST_JOINTS", "NEUTRAL_HEIGHT", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "ShapeModel",
-    "forward_kinematics", "rest_joints", "shape_model", "sole_clearance", "standing_height",
+    "NEUTRAL_REST_JOINTS", "NEUTRAL_HEIGHT", "SEGMENT_MASSES", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "ShapeModel",
+    "center_of_mass", "forward_kinematics", "rest_joints", "shape_model", "sole_clearance", "standing_height",
 ]

@@ -17,6 +17,11 @@ Definitions (all on the final 50 Hz motion unless said):
                             speed < 0.3 m/s, acceleration < 1 m/s^2): how far its ground projection lies
                             inside the support polygon (convex hull of the sole geoms), minimum in mm
                             (negative: outside, the robot would topple tracking it), and how many frames.
+                            The same for the zero-moment point of the centre of mass's path
+                            (x - z x'' / (g + z''), cart-table model) over all double-support frames
+                            except the 3 either side of a touch-down or lift-off: where it leaves the feet
+                            the motion is dynamically infeasible (zmp_inside_support_min_mm < 0), e.g. a
+                            landing that stops the body dead and restarts it; and when (zmp_worst_time_s).
 """
 
 from __future__ import annotations
@@ -27,6 +32,11 @@ from scipy.spatial import ConvexHull
 
 from pipeline.motion.motion import Motion
 from pipeline.robot.g1 import joint_limits
+
+SLOW_COM_SPEED = 0.3  # m/s
+SLOW_COM_ACCEL = 1.0  # m/s^2
+ZMP_SETTLE_FRAMES = 3  # frames either side of a contact change left out of the zero-moment point check
+GRAVITY = 9.81
 
 
 class GeomHeights:
@@ -61,22 +71,28 @@ class GeomHeights:
         return feet, body
 
     def support_margin(self, motion: Motion) -> dict[str, np.ndarray]:
-        """Per frame: the whole-body centre of mass on the ground plane (T, 2), and its signed distance (m)
-        inside the convex hull of both feet's sole capsules (T,), negative outside."""
+        """Per frame: the whole-body centre of mass (T, 3), its signed distance (m) inside the convex
+        hull of both feet's sole capsules on the ground plane (T,), negative outside, and the same for
+        the zero-moment point of the centre of mass's path (T,), x - z x'' / (g + z'')."""
         model, data, soles = self.model, self.data, self.soles
-        com = np.empty((motion.num_frames, 2))
-        inside = np.empty(motion.num_frames)
+        com = np.empty((motion.num_frames, 3))
+        hulls = []
         for t in range(motion.num_frames):
             self._pose(motion, t)
             mujoco.mj_comPos(model, data)
-            com[t] = data.subtree_com[0, :2]
+            com[t] = data.subtree_com[0]
             # a capsule's segment ends (along its local z), widened by its radius below
             half = data.geom_xmat[soles].reshape(-1, 3, 3)[:, :2, 2] * model.geom_size[soles, 1:2]
-            ends = np.concatenate([data.geom_xpos[soles, :2] + half, data.geom_xpos[soles, :2] - half])
-            hull = ConvexHull(ends)
+            hulls.append(ConvexHull(np.concatenate([data.geom_xpos[soles, :2] + half, data.geom_xpos[soles, :2] - half])))
+        radius = model.geom_size[soles, 0].min()
+
+        def inside(points):
             # facet equations n.x + d <= 0 inside, |n| = 1: the nearest facet gives the distance
-            inside[t] = -(hull.equations[:, :2] @ com[t] + hull.equations[:, 2]).max() + model.geom_size[soles, 0].min()
-        return {"com": com, "inside": inside}
+            return np.array([radius - (h.equations[:, :2] @ p + h.equations[:, 2]).max() for h, p in zip(hulls, points)])
+
+        acc = np.gradient(np.gradient(com, motion.dt, axis=0), motion.dt, axis=0)
+        zmp = com[:, :2] - com[:, 2:3] * acc[:, :2] / (GRAVITY + acc[:, 2:3])
+        return {"com": com, "inside": inside(com[:, :2]), "zmp_inside": inside(zmp)}
 
     def _pose(self, motion: Motion, i: int) -> None:
         """Kinematics of frame i into self.data."""
@@ -133,18 +149,28 @@ def joint_report(motion: Motion, model: mujoco.MjModel) -> dict:
     }
 
 
-SLOW_COM_SPEED = 0.3  # m/s
-SLOW_COM_ACCEL = 1.0  # m/s^2
 
 
 def balance_report(motion: Motion, heights: GeomHeights, contacts: np.ndarray) -> dict:
     """See `balance` in the module docstring. contacts: (T, 2) bool, per foot."""
     margin = heights.support_margin(motion)
-    com = margin["com"]
+    com = margin["com"][:, :2]
     vel = np.gradient(com, motion.dt, axis=0)
     acc = np.gradient(vel, motion.dt, axis=0)
     slow = (np.linalg.norm(vel, axis=1) < SLOW_COM_SPEED) & (np.linalg.norm(acc, axis=1) < SLOW_COM_ACCEL)
-    checked = slow & contacts.all(axis=1)
+    both = contacts.all(axis=1)
+    checked = slow & both
     inside = margin["inside"][checked]
+    # The zero-moment point, over double support away from touch-downs and lift-offs (impacts, which
+    # the reference's finite-difference accelerations cannot resolve).
+    changes = np.flatnonzero(np.any(np.diff(contacts, axis=0), axis=1))
+    settled = both.copy()
+    for c in changes:
+        settled[max(c + 1 - ZMP_SETTLE_FRAMES, 0) : c + 1 + ZMP_SETTLE_FRAMES] = False
+    zmp = margin["zmp_inside"]
+    worst = int(np.flatnonzero(settled)[np.argmin(zmp[settled])]) if settled.any() else None
     return {"com_inside_support_min_mm": 1e3 * float(inside.min()) if inside.size else None,
-            "frames_checked": int(checked.sum())}
+            "frames_checked": int(checked.sum()),
+            "zmp_inside_support_min_mm": None if worst is None else 1e3 * float(zmp[worst]),
+            "zmp_worst_time_s": None if worst is None else worst * motion.dt,
+            "zmp_frames_checked": int(settled.sum())}
