@@ -82,8 +82,8 @@ def test_bundled_sample_balances_on_the_g1():
     of mass is at least 4 cm inside the soles' outline (3 cm past the ends of the sole capsules'
     centre-lines, which are 1 cm thick), so tracking it does not start by falling over; the first
     synthetic sample crouched with it 1.7 cm inside, at the heels. After touch-down (the impact's 3
-    frames aside) the zero-moment point of its path stays at least 15 mm inside the soles, so the
-    landing brakes the flight without tipping; the samples before landed with it 0.39 m outside."""
+    frames aside) the zero-moment point of its path stays at least 25 mm inside the soles (42 mm), so
+    the landing brakes the flight without tipping; the samples before landed with it 0.24 m outside."""
     from pipeline.human.importers import load_human_motion
     from pipeline.human.sample import SAMPLE_PATH, make_sample_clip
     from pipeline.motion.motion import RobotKinematics
@@ -100,7 +100,7 @@ def test_bundled_sample_balances_on_the_g1():
     slow = np.flatnonzero(speed[:takeoff] < SLOW_COM_SPEED)
     assert len(slow) > 0.5 * takeoff
     assert margin["inside"][slow].min() >= 0.04
-    assert margin["zmp_inside"][touchdown + ZMP_SETTLE_FRAMES :].min() >= 0.015
+    assert margin["zmp_inside"][touchdown + ZMP_SETTLE_FRAMES :].min() >= 0.025
     assert report["balance"]["zmp_frames_checked"] > 0.5 * motion.num_frames
 
 

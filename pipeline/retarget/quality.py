@@ -18,7 +18,8 @@ Definitions (all on the final 50 Hz motion unless said):
                             inside the support polygon (convex hull of the sole geoms), minimum in mm
                             (negative: outside, the robot would topple tracking it), and how many frames.
                             The same for the zero-moment point of the centre of mass's path
-                            (x - z x'' / (g + z''), cart-table model) over all double-support frames
+                            (x - z x'' / (g + z''), cart-table model, accelerations from cubic fits over
+                            0.2 s) over all double-support frames
                             except the 3 either side of a touch-down or lift-off: where it leaves the feet
                             the motion is dynamically infeasible (zmp_inside_support_min_mm < 0), e.g. a
                             landing that stops the body dead and restarts it; and when (zmp_worst_time_s).
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+from scipy.signal import savgol_filter
 from scipy.spatial import ConvexHull
 
 from pipeline.motion.motion import Motion
@@ -36,7 +38,19 @@ from pipeline.robot.g1 import joint_limits
 SLOW_COM_SPEED = 0.3  # m/s
 SLOW_COM_ACCEL = 1.0  # m/s^2
 ZMP_SETTLE_FRAMES = 3  # frames either side of a contact change left out of the zero-moment point check
+# The zero-moment point's accelerations come from a cubic Savitzky-Golay fit over this window: raw second
+# differences of a clip estimated from video are mostly jitter the robot would never follow (several
+# metres too far out on the shared clips), and 0.2 s is about the PD-tracked robot's own time scale.
+ZMP_SMOOTHING_S = 0.2
 GRAVITY = 9.81
+
+
+def smooth_acceleration(x: np.ndarray, dt: float) -> np.ndarray:
+    """Second time derivative of x (T, ...) along axis 0, from local cubic fits over ZMP_SMOOTHING_S."""
+    window = 2 * int(round(ZMP_SMOOTHING_S / dt / 2)) + 1
+    if len(x) < window or window < 5:
+        return np.gradient(np.gradient(x, dt, axis=0), dt, axis=0)
+    return savgol_filter(x, window, 3, deriv=2, delta=dt, axis=0)
 
 
 class GeomHeights:
@@ -90,7 +104,7 @@ class GeomHeights:
             # facet equations n.x + d <= 0 inside, |n| = 1: the nearest facet gives the distance
             return np.array([radius - (h.equations[:, :2] @ p + h.equations[:, 2]).max() for h, p in zip(hulls, points)])
 
-        acc = np.gradient(np.gradient(com, motion.dt, axis=0), motion.dt, axis=0)
+        acc = smooth_acceleration(com, motion.dt)
         zmp = com[:, :2] - com[:, 2:3] * acc[:, :2] / (GRAVITY + acc[:, 2:3])
         return {"com": com, "inside": inside(com[:, :2]), "zmp_inside": inside(zmp)}
 
