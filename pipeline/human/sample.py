@@ -144,7 +144,8 @@ def _set_legs(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, hip:
     tracks[f"{side}_ankle_flex"][frames] = -(hip + knee)  # all three turn about the same axis
 
 
-def _solve_leg(tracks, frames, side, trans, ankle_target, rest, iterations=12):
+def _solve_leg(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, trans: np.ndarray,
+               ankle_target: np.ndarray, rest: np.ndarray, iterations: int = 12) -> tuple[np.ndarray, np.ndarray]:
     """Hip and knee flexion of one leg on `frames` that put its ankle at `ankle_target` (F, 3; x and z
     are matched) for the given root translations: Newton's method with a finite-difference
     Jacobian, all frames at once."""
@@ -174,9 +175,9 @@ def _solve_leg(tracks, frames, side, trans, ankle_target, rest, iterations=12):
 def _balanced_landing(height, times, x_takeoff: float, x_rest: float, flight_time: float):
     """The centre of mass's horizontal path after touch-down (at times[0]) and the flight's speed vx.
 
-    The zero-moment point is held at x_rest, over the middle of the landed feet, so the robot can
-    do it without tipping: x'' = (g + z'') / z (x - x_rest), an inverted pendulum of the landing's own
-    height z(t). Of the touch-down points D behind x_rest (reached by a flight from x_takeoff with
+    The zero-moment point is held at x_rest, where the final standing pose has its centre of mass
+    over the landed feet, so the robot can do it without tipping: x'' = (g + z'') / z (x - x_rest),
+    an inverted pendulum of the landing's own height z(t). Of the touch-down points D behind x_rest (reached by a flight from x_takeoff with
     vx = (x_rest - D - x_takeoff) / T), too near ones overshoot x_rest and too far ones fall back:
     the one that comes to rest is found by bisection.
     """
@@ -185,25 +186,23 @@ def _balanced_landing(height, times, x_takeoff: float, x_rest: float, flight_tim
     fine = times[0] + dt * np.arange((len(times) - 1) * steps_per_frame + 1)
     stiffness = (GRAVITY + height(fine, 2)) / height(fine)
 
-    def integrate(distance):
+    def integrate(distance):  # x relative to x_rest, semi-implicit Euler
         x, v = -distance, (x_rest - distance - x_takeoff) / flight_time
         path = np.empty(len(fine))
         for i, k in enumerate(stiffness):
             path[i] = x
             v += k * x * dt
             x += v * dt
-        return path, v
+        return path
 
     near, far = 0.0, x_rest - x_takeoff
     for _ in range(60):
         distance = 0.5 * (near + far)
-        path, _ = integrate(distance)
-        if path.max() > 0.0:
+        if integrate(distance).max() > 0.0:
             near = distance  # overshot
         else:
             far = distance
-    path, _ = integrate(distance)
-    return x_rest + path[::steps_per_frame], (x_rest - distance - x_takeoff) / flight_time
+    return x_rest + integrate(distance)[::steps_per_frame], (x_rest - distance - x_takeoff) / flight_time
 
 
 def make_sample_clip() -> SampleClip:
@@ -235,7 +234,7 @@ def make_sample_clip() -> SampleClip:
     vz0 = (com_touchdown_z - com_takeoff[2]) / flight_time + 0.5 * GRAVITY * flight_time
     absorb_t, recover_t = KEYFRAMES[-3][0], KEYFRAMES[-2][0]
     height = CubicHermiteSpline(
-        [times[touchdown], absorb_t, recover_t, times[-1] + 1e-9],
+        [times[touchdown], absorb_t, recover_t, times[-1]],
         [com_touchdown_z, com_rest[2] - ABSORB_DEPTH_M, com_rest[2], com_rest[2]],
         [vz0 - GRAVITY * flight_time, 0.0, 0.0, 0.0])
     after = np.arange(touchdown, frames)
