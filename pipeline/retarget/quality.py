@@ -19,10 +19,10 @@ Definitions (all on the final 50 Hz motion unless said):
                             (negative: outside, the robot would topple tracking it), and how many frames.
                             The same for the zero-moment point of the centre of mass's path
                             (x - z x'' / (g + z''), cart-table model, accelerations from cubic fits over
-                            0.2 s) over all double-support frames
-                            except the 3 either side of a touch-down or lift-off: where it leaves the feet
-                            the motion is dynamically infeasible (zmp_inside_support_min_mm < 0), e.g. a
-                            landing that stops the body dead and restarts it; and when (zmp_worst_time_s).
+                            0.2 s) over all double-support frames except the 3 either side of a touch-down
+                            or lift-off: where it leaves the feet the motion is dynamically infeasible
+                            (zmp_inside_support_min_mm < 0), e.g. a landing that stops the body dead and
+                            restarts it; and when (zmp_worst_time_s).
 """
 
 from __future__ import annotations
@@ -176,7 +176,7 @@ def balance_report(motion: Motion, heights: GeomHeights, contacts: np.ndarray) -
     checked = slow & both
     inside = margin["inside"][checked]
     # The zero-moment point, over double support away from touch-downs and lift-offs (impacts, which
-    # the reference's finite-difference accelerations cannot resolve).
+    # accelerations taken from a kinematic reference cannot resolve).
     changes = np.flatnonzero(np.any(np.diff(contacts, axis=0), axis=1))
     settled = both.copy()
     for c in changes:
