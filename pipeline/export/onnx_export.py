@@ -52,7 +52,7 @@ class DeployedPolicy(nn.Module):
         self.register_buffer("action_scale", torch.as_tensor(np.asarray(action_scale), dtype=torch.float32))
         self.reference = reference
         if reference is not None:
-            self.register_buffer("reference_joint_pos", torch.as_tensor(np.asarray(reference.joint_pos), dtype=torch.float32))
+            self.register_buffer("reference_joint_targets", torch.as_tensor(np.asarray(reference.joint_targets), dtype=torch.float32))
 
     def _offset(self, obs: torch.Tensor, phase_rate_offset: torch.Tensor) -> torch.Tensor:
         if self.reference is None:
@@ -60,9 +60,9 @@ class DeployedPolicy(nn.Module):
         rate = self.reference.phase_rate
         phase = obs[:, self.reference.phase_index: self.reference.phase_index + 1]
         phase = phase + rate + phase_rate_offset.clamp(-0.75 * rate, rate)
-        last = self.reference_joint_pos.shape[0] - 1
+        last = self.reference_joint_targets.shape[0] - 1
         frame = torch.round(phase * last).clamp(0, last).long().reshape(-1)
-        return self.reference_joint_pos[frame]
+        return self.reference_joint_targets[frame]
 
     def forward(self, obs: torch.Tensor):
         x = self.normalizer(obs) if self.normalizer is not None else obs
@@ -80,12 +80,12 @@ class DeployedPolicy(nn.Module):
 class ReferenceOffset:
     """What the graph needs to add the per-frame joint targets to the action (see `DeployedPolicy`)."""
 
-    joint_pos: np.ndarray  # (T, J) joint targets at a zero action (`zero_action_targets`), action order
+    joint_targets: np.ndarray  # (T, J) joint targets at a zero action (`zero_action_targets`), action order
     phase_rate: float  # Δφ per control step
     phase_index: int  # where the newest step's phase sits in the raw observation
 
     @classmethod
-    def for_layout(cls, joint_pos, phase_rate: float, layout: dict) -> "ReferenceOffset":
+    def for_layout(cls, joint_targets, phase_rate: float, layout: dict) -> "ReferenceOffset":
         start = 0
         for term in layout["terms"]:
             if term["name"] == "phase":
@@ -94,7 +94,7 @@ class ReferenceOffset:
         else:
             raise ValueError("the observation layout has no phase term")
         newest = (int(layout["history"]) - 1) * int(layout["step_dim"])  # history is oldest first
-        return cls(np.asarray(joint_pos, dtype=np.float32), float(phase_rate), newest + start)
+        return cls(np.asarray(joint_targets, dtype=np.float32), float(phase_rate), newest + start)
 
 
 def export_onnx(module: DeployedPolicy, obs_dim: int, path: str | Path, metadata: dict | None = None) -> Path:

@@ -90,7 +90,7 @@ def _pose_tracks(times: np.ndarray, touchdown_legs: dict | None = None) -> dict[
         keys = [dict(k) for _, k in KEYFRAMES]
         if touchdown_legs is not None:
             hip, knee = touchdown_legs[side]
-            keys[TOUCHDOWN_KEY].update(hip_flex=hip, knee_flex=knee, ankle_flex=-(hip + knee))
+            keys[TOUCHDOWN_KEY].update(hip_flex=hip, knee_flex=knee, ankle_flex=_flat_foot_ankle(hip, knee))
         for p in LEG_PARAMS:
             tracks[f"{side}_{p}"] = PchipInterpolator(key_t, [k[p] for k in keys])(times)
     return tracks
@@ -137,11 +137,16 @@ def _feet_x(pos: np.ndarray) -> np.ndarray:
     return pos[:, [7, 8, 10, 11], 0].mean(axis=1)
 
 
+def _flat_foot_ankle(hip, knee):
+    """Ankle flexion that keeps the foot at its rest pitch: hip, knee and ankle turn about the same axis."""
+    return -(hip + knee)
+
+
 def _set_legs(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, hip: np.ndarray, knee: np.ndarray) -> None:
     """One leg's angles on `frames`, with the ankle keeping the foot flat (its rest pitch)."""
     tracks[f"{side}_hip_flex"][frames] = hip
     tracks[f"{side}_knee_flex"][frames] = knee
-    tracks[f"{side}_ankle_flex"][frames] = -(hip + knee)  # all three turn about the same axis
+    tracks[f"{side}_ankle_flex"][frames] = _flat_foot_ankle(hip, knee)
 
 
 def _solve_leg(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, trans: np.ndarray,
@@ -223,11 +228,12 @@ def make_sample_clip() -> SampleClip:
     trans[before, 0] = _feet_x(pos[:1])[0] - _feet_x(pos[before])
     com_takeoff = smpl.center_of_mass(pos[takeoff] + trans[takeoff])
 
-    # Where the body comes to rest: the final pose standing with its feet JUMP_DISTANCE_M ahead.
-    land_feet_x = _feet_x(pos[:1])[0] + trans[0, 0] + JUMP_DISTANCE_M
+    # Where the body comes to rest: the final pose standing with its feet JUMP_DISTANCE_M ahead (the
+    # feet start at the pose's own x: trans[0] = 0).
+    stand = pos[-1] + np.array([_feet_x(pos[:1])[0] + JUMP_DISTANCE_M - _feet_x(pos[-1:])[0], 0.0,
+                                -_sole_height(pos[-1:], clearance)[0]])
     # (Knees a little soft, SOFT_KNEES_M lower: straight legs are where the leg solve below is singular.)
-    com_rest = smpl.center_of_mass(pos[-1]) + np.array(
-        [land_feet_x - _feet_x(pos[-1:])[0], 0.0, -_sole_height(pos[-1:], clearance)[0] - SOFT_KNEES_M])
+    com_rest = smpl.center_of_mass(stand) - np.array([0.0, 0.0, SOFT_KNEES_M])
     # The landing's height: the centre of mass touches down TOUCHDOWN_DROP_M below standing height,
     # still falling at the flight's speed, sinks to ABSORB_DEPTH_M below it and rises back.
     com_touchdown_z = com_rest[2] - TOUCHDOWN_DROP_M
@@ -248,24 +254,27 @@ def make_sample_clip() -> SampleClip:
     com[after, 0] = landing_x
     com[after, 2] = height(times[after])
 
-    # The legs of the landing reach the pinned feet from wherever the planned body is; the touch-down
-    # key takes those legs so the flight's leg swing ends in them. The body's translation depends on
-    # the legs (a third of the mass), so alternate a few times.
-    # Each ankle where the final standing pose has it.
-    stand = pos[-1:] + np.array([land_feet_x - _feet_x(pos[-1:])[0], 0.0, -_sole_height(pos[-1:], clearance)[0]])
-    ankle_targets = {side: np.repeat(stand[:, J[f"{side}_ankle"]], len(after), axis=0) for side in SIDES}
+    # The legs of the landing reach the pinned feet (each ankle where the standing pose has it) from
+    # wherever the planned body is; the touch-down key takes those legs so the flight's leg swing ends
+    # in them. The body's translation depends on the legs (a third of the mass), so alternate a few times.
+    ankle_targets = {side: np.repeat(stand[None, J[f"{side}_ankle"]], len(after), axis=0) for side in SIDES}
     airborne = np.arange(takeoff + 1, touchdown)
-    legs = None
-    for iteration in range(6):
-        tracks = _pose_tracks(times, None if legs is None else {side: (h[0], k[0]) for side, (h, k) in legs.items()})
-        for side, (hip, knee) in (legs or {}).items():
+
+    def place_body(legs):
+        """The pose with these landing legs, and the root translations that put its centre of mass on `com`."""
+        tracks = _pose_tracks(times, {side: (h[0], k[0]) for side, (h, k) in legs.items()} if legs else None)
+        for side, (hip, knee) in legs.items():
             _set_legs(tracks, after, side, hip, knee)
         pos = _pose_only_fk(tracks, rest)
-        trans[airborne] = com[airborne] - smpl.center_of_mass(pos[airborne])
-        trans[after] = com[after] - smpl.center_of_mass(pos[after])
-        if iteration < 5:
-            legs = {side: _solve_leg(tracks, after, side, trans[after], ankle_targets[side], rest) for side in SIDES}
-    trans[:, 0] -= trans[0, 0]
+        for frames in (airborne, after):
+            trans[frames] = com[frames] - smpl.center_of_mass(pos[frames])
+        return tracks
+
+    legs = {}
+    for _ in range(5):
+        tracks = place_body(legs)
+        legs = {side: _solve_leg(tracks, after, side, trans[after], ankle_targets[side], rest) for side in SIDES}
+    tracks = place_body(legs)
     return SampleClip(_rotvecs(tracks).reshape(frames, 66), trans, FPS, takeoff, touchdown)
 
 
