@@ -14,6 +14,7 @@ from pipeline.evaluation.metrics import (
     bin_by_psi,
     episode_metrics,
     episode_success,
+    keyframe_funnel,
 )
 
 
@@ -142,3 +143,21 @@ def test_psi_reached_in_episode_metrics_and_aggregate():
     out = aggregate(eps)
     assert out["psi_reached"] == pytest.approx(0.9) and out["psi_reached_max"] == pytest.approx(0.7)
     assert math.isnan(episode_metrics(records[0]).psi_reached)  # no PsiReach: not measured
+
+
+def test_keyframe_funnel_counts_by_hand():
+    """Three episodes over three keyframes: one succeeds, one drifts past 1 m at the second keyframe
+    and keeps going, one falls after the first. The funnel's last on-track value is the success rate."""
+    kf = [False, True, False, True, False, True]
+    good = episode_metrics(_record(np.full((6, 2), 0.1), crossed=kf))
+    drift = np.full((6, 2), 0.2)
+    drift[3] = 1.5  # second keyframe 1.5 m off, third back to 0.2
+    drifting = episode_metrics(_record(drift, crossed=kf))
+    fallen = episode_metrics(_record(np.full((3, 2), 0.3), crossed=[False, True, False], num_keyframes=3))
+    assert fallen.keyframe_errors == pytest.approx((0.3,))
+    rows = keyframe_funnel([good, drifting, fallen], num_keyframes=3)
+    assert [r["reached"] for r in rows] == pytest.approx([100.0, 200 / 3, 200 / 3])
+    assert [r["on_track"] for r in rows] == pytest.approx([100.0, 100 / 3, 100 / 3])
+    assert [r["e_g_bpe"] for r in rows] == pytest.approx([200.0, 800.0, 150.0])  # means over who reached k
+    assert rows[-1]["on_track"] == pytest.approx(aggregate([good, drifting, fallen])["success"])
+    assert math.isnan(keyframe_funnel([fallen], num_keyframes=3)[2]["e_g_bpe"])

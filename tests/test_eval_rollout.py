@@ -70,9 +70,15 @@ def test_real_env_smoke_and_bad_range():
     assert all(1.5 <= e.psi <= 2.0 for run in result.runs for e in run["hard"])
     from pipeline.evaluation.report import metrics_document
 
+    from pipeline.evaluation.run import funnel_rows
+
     doc = metrics_document("far_jump", "adamimic", result.runs, result.psi_ranges)
+    doc["keyframe_funnel"] = funnel_rows(result.runs, data, cfg.success_threshold_m)
     assert math.isfinite(doc["ranges"]["overall"]["e_l_bpe"]["mean"])
-    assert "| adamimic |" in results_table({"adamimic": doc})
+    assert [r["time_s"] for r in doc["keyframe_funnel"]] == pytest.approx(data.keyframe_frames / data.motion.fps)
+    assert doc["keyframe_funnel"][-1]["on_track"] == pytest.approx(doc["ranges"]["overall"]["success"]["mean"])
+    table = results_table({"adamimic": doc})
+    assert "| adamimic |" in table and "## adamimic: keyframe by keyframe" in table
     data.psi_ranges = {"easy": [(5.0, 6.0)], "hard": [(1.5, 2.0)]}
     with pytest.raises(PipelineInputError, match="psi.easy"):
         evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))

@@ -8,7 +8,9 @@ Definitions (AdaMimic, "Evaluation metrics"):
   * E_l-bpe (mm): root-frame body position error averaged over bodies and all steps.
   * E_smth (rad/s^2): mean absolute joint acceleration over the episode.
 Not in the paper: ψ reached (`PsiReach`), the task variable the robot actually achieved, e.g. how far
-a far jump landed; per range its mean and the farthest a successful episode reached.
+a far jump landed; per range its mean and the farthest a successful episode reached. And the keyframe
+funnel (`keyframe_funnel`): how many episodes reached each keyframe and were still on track there,
+which says where a policy that fails loses its episodes (a fall after the landing, a missed take-off).
 
 Errors are pooled: over a set of episodes, E_g-bpe is the mean over every (episode, keyframe,
 body) sample, E_l-bpe over every (episode, step, body) sample, E_smth over every (episode, step,
@@ -88,6 +90,7 @@ class EpisodeMetrics:
     joint_acc_abs_sum: float  # rad/s^2, over (step, joint) samples
     joint_acc_count: int
     psi_reached: float = float("nan")  # see PsiReach; nan when not measurable
+    keyframe_errors: tuple[float, ...] = ()  # body-mean world error (m) at each keyframe crossed, in order
 
 
 def keyframe_mean_errors(body_error_world: np.ndarray, keyframe_crossed: np.ndarray) -> np.ndarray:
@@ -164,7 +167,24 @@ def episode_metrics(record: EpisodeRecord, threshold: float = SUCCESS_THRESHOLD_
         joint_acc_abs_sum=float(np.abs(record.joint_acc).sum()),
         joint_acc_count=int(record.joint_acc.size),
         psi_reached=reached,
+        keyframe_errors=tuple(float(e) for e in keyframe_mean_errors(record.body_error_world, crossed)),
     )
+
+
+def keyframe_funnel(episodes: list[EpisodeMetrics], num_keyframes: int,
+                    threshold: float = SUCCESS_THRESHOLD_M) -> list[dict[str, float]]:
+    """Per keyframe k: `reached` (% of the episodes that crossed it: the others had fallen before),
+    `on_track` (% that crossed it and every keyframe up to it within `threshold`, so on_track at the
+    last keyframe is the success rate) and `e_g_bpe` (mm, mean error at k over the episodes that
+    reached it)."""
+    rows = []
+    n = len(episodes)
+    for k in range(num_keyframes):
+        at_k = [e.keyframe_errors[k] for e in episodes if len(e.keyframe_errors) > k]
+        on_track = sum(1 for e in episodes if len(e.keyframe_errors) > k and max(e.keyframe_errors[: k + 1]) <= threshold)
+        rows.append({"keyframe": k, "reached": 100.0 * _ratio(len(at_k), n), "on_track": 100.0 * _ratio(on_track, n),
+                     "e_g_bpe": 1000.0 * float(np.mean(at_k)) if at_k else float("nan")})
+    return rows
 
 
 def _ratio(num: float, den: int) -> float:

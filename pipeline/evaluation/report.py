@@ -154,7 +154,21 @@ def results_table(docs: dict[str, dict]) -> str:
         note += ("\nψ reached (the task variable achieved, from where the robot was at the edited keyframe; "
                  "mean over all episodes / farthest by a successful one; the clip's own ψ_raw "
                  f"{next(iter(docs.values())).get('psi_raw', float('nan')):.2f}):\n" + "\n".join(reach) + "\n")
-    return "\n".join(lines) + "\n" + note
+    funnels = [funnel_table(variant, doc["keyframe_funnel"]) for variant, doc in docs.items() if doc.get("keyframe_funnel")]
+    return "\n".join(lines) + "\n" + note + "".join(funnels)
+
+
+def funnel_table(variant: str, rows: list[dict]) -> str:
+    """Markdown: where the variant's episodes end, keyframe by keyframe (run.funnel_rows)."""
+    lines = [f"\n## {variant}: keyframe by keyframe\n",
+             "Of all evaluated episodes: % that reached the keyframe (the rest had fallen), % that reached it with "
+             "every keyframe so far within the success threshold, and the mean body error there.\n",
+             "| keyframe | time (s) | reached (%) | on track (%) | E_g-bpe (mm) |", "|---|---|---|---|---|"]
+    for r in rows:
+        name = f"{r['keyframe']}" + (f" {r['label']}" if r.get("label") else "")
+        err = f"{r['e_g_bpe']:.0f}" if np.isfinite(r["e_g_bpe"]) else "–"
+        lines.append(f"| {name} | {r['time_s']:.2f} | {r['reached']:.1f} | {r['on_track']:.1f} | {err} |")
+    return "\n".join(lines) + "\n"
 
 
 def write_report(task: str, variants: list[str], results_dir: str | Path, out_dir: str | Path) -> Path:

@@ -1,7 +1,8 @@
 """The `evaluate` and `report` stages' entry points (called by stages/evaluate.py, stages/report.py).
 
 evaluate_variant writes into `out_dir` (results/<task>/<variant>/):
-  metrics.json            DVC metrics: per range (easy, hard, overall) mean/std over runs
+  metrics.json            DVC metrics: per range (easy, hard, overall) mean/std over runs, and the
+                          keyframe funnel (every episode pooled: how many reached each keyframe on track)
   per_psi.csv, per_psi.json   DVC plots: metrics in ψ bins
   media/per_psi.png       success and errors vs ψ
   media/adapters.png      phase interval and adapter action magnitude over the episode, several ψ
@@ -26,6 +27,7 @@ from pipeline.evaluation.evaluate import (
     spread_in_ranges,
     trace_episode,
 )
+from pipeline.evaluation.metrics import keyframe_funnel
 from pipeline.evaluation.report import metrics_document, per_psi_rows, plot_adapters, plot_per_psi, write_metrics, write_per_psi
 
 
@@ -63,6 +65,7 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
                            {"episodes_per_range": eval_cfg.episodes_per_range, "runs": eval_cfg.runs,
                             "psi_raw": float(data.psi_raw),
                             "domain_randomization": eval_cfg.domain_randomization, "policy_stage": meta.get("stage")})
+    doc["keyframe_funnel"] = funnel_rows(result.runs, data, eval_cfg.success_threshold_m)
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -79,6 +82,17 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
             for name, psi in _video_psi(eval_cfg, result.psi_ranges):
                 render_rollout_video(policy, data, psi, make_env, media / f"{name}_psi{psi:.2f}.mp4", eval_cfg)
     return doc
+
+
+def funnel_rows(runs, data, threshold: float) -> list[dict]:
+    """metrics.keyframe_funnel over every episode of every run and range, with each keyframe's
+    reference time and label."""
+    episodes = [e for run in runs for name in run for e in run[name]]
+    rows = keyframe_funnel(episodes, data.num_keyframes, threshold)
+    for row, frame, label in zip(rows, data.keyframe_frames, data.keyframe_labels):
+        row["time_s"] = float(frame) / data.motion.fps
+        row["label"] = label
+    return rows
 
 
 def env_cfg_phase_rate(data) -> float:
