@@ -7,7 +7,8 @@ Prints the training curve, where success is the trainer's (stochastic policy, ra
 half the episodes from a reference state): no termination and a mean body error <= 1 m at every
 keyframe. Then evaluates the final policy as the evaluate stage does (deterministic, from t = 0 over
 the whole segment, no randomisation, 128 episodes), prints its success by ψ bin, and ends with that
-success: `success=<s> minutes=<m>`. The same episodes are also scored on the paper's easy and hard ranges.
+success: `success=<s> minutes=<m>`. The same episodes are also scored on the paper's easy and hard ranges,
+and keyframe by keyframe (the share that reached each one and the mean error there: where episodes are lost).
 
 With `--stage2-minutes M`, stage 2 (variant adamimic: phase and tracking adapters on the frozen stage-1
 policy, episodes from t = 0) then trains for M more minutes and is evaluated on the same episodes; the
@@ -116,6 +117,16 @@ def report(label: str, ev: dict, episodes: list, data) -> None:
           f"{ev['psi_reached_max']:.2f} m; clip {data.psi_raw:.2f} m)")
     print(f"[learn_cpu]   by ψ (m): {success_by_psi(episodes)}")
     print(f"[learn_cpu]   by the paper's ranges: {success_by_range(episodes, data.psi_ranges)}")
+    print(f"[learn_cpu]   keyframe by keyframe, % reached (mean error mm): {funnel_line(episodes, data)}")
+
+
+def funnel_line(episodes: list, data) -> str:
+    """`0.10 100 (12) | 0.40 100 (30) | ... | 1.48 landing 62 (310)`: where the episodes are lost."""
+    from pipeline.evaluation.run import funnel_rows
+
+    rows = funnel_rows([{"all": episodes}], data, 1.0)
+    return " | ".join(f"{r['time_s']:.2f}{' ' + r['label'] if r['label'] else ''} {r['reached']:.0f} "
+                      f"({r['e_g_bpe']:.0f})" for r in rows)
 
 
 def set_dotted(tree: dict, item: str) -> None:
