@@ -368,6 +368,26 @@ def test_reset_state_init_from_keyframes(data):
     assert np.allclose(env.backend.qvel[:, :3].numpy(), data.motion.root_lin_vel[frames], atol=1e-4)
 
 
+def test_reset_state_velocity_noise_only_on_late_starts(data):
+    """rsi_*_vel_noise perturbs the base velocity of reference-state starts within ±noise per axis;
+    starts from t = 0 keep the reference's (standing) state exactly."""
+    noise = {"rsi_lin_vel_noise": [0.5, 0.4, 0.2], "rsi_ang_vel_noise": [0.3, 0.3, 0.6]}
+    env = TrackingEnv(quiet_cfg(rsi_prob=0.5, **noise), data, num_envs=64)
+    torch.manual_seed(0)
+    env.reset()
+    frames = env.frame.numpy()
+    late = frames > 0
+    assert 10 < late.sum() < 64
+    delta = env.backend.qvel[:, :6].numpy() - data.motion.qvel()[frames, :6]
+    bound = np.array(noise["rsi_lin_vel_noise"] + noise["rsi_ang_vel_noise"])
+    assert np.all(np.abs(delta[late]) <= bound + 1e-5)
+    assert np.all(np.abs(delta[late]).max(0) > 0.6 * bound)  # spread over the whole range, every axis
+    assert np.allclose(delta[~late], 0.0, atol=1e-6)
+    assert np.allclose(env.backend.qvel[:, 6:].numpy(), data.motion.joint_vel[frames], atol=1e-4)
+    with pytest.raises(PipelineInputError, match="rsi_lin_vel_noise"):
+        quiet_cfg(rsi_lin_vel_noise=[0.5, -0.1, 0.0])
+
+
 def test_domain_randomisation_ranges_applied(data):
     n = 32
     env = TrackingEnv(EnvConfig(), data, num_envs=n)

@@ -201,6 +201,13 @@ class EnvConfig:
     # of jumping. Flights are left out because an edited landing may be out of reach from a state of
     # the unedited flight.
     rsi_frames: str = "stance"
+    # Uniform noise (±) added to the base's velocity at a reference-state start, as BeyondMimic and mjlab's
+    # tracking task perturb their starts: linear (m/s, world x y z) and angular (rad/s, base frame, as
+    # MuJoCo's free joint stores it).
+    # Exact reference states teach recovery from nowhere but the reference: a policy that lands a jump a
+    # little fast or pitched forward has never been there. 0 turns it off.
+    rsi_lin_vel_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rsi_ang_vel_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     # Joint targets = offset + action_scale · action. "feedforward": the reference's joints at the frame
     # the step ends on, plus the PD actuators' feedforward (Kd q̇_ref + τ_ref) / Kp so that a zero action
     # produces the reference's own torques (envs/feedforward.py); "reference": the reference's joints
@@ -237,6 +244,10 @@ class EnvConfig:
             bad("rsi_prob", "must be in [0, 1]")
         if self.rsi_frames not in ("stance", "keyframes"):
             bad("rsi_frames", f"must be 'stance' or 'keyframes', got {self.rsi_frames!r}")
+        for key in ("rsi_lin_vel_noise", "rsi_ang_vel_noise"):
+            value = getattr(self, key)
+            if len(value) != 3 or any(not float(v) >= 0.0 for v in value):
+                bad(key, f"must be three numbers >= 0 (x, y, z), got {value!r}")
         if self.action_offset not in ACTION_OFFSETS:
             bad("action_offset", f"must be one of {', '.join(ACTION_OFFSETS)}, got {self.action_offset!r}")
         if self.sampling.mode not in ("uniform", "adaptive", "curriculum", "sweep"):
