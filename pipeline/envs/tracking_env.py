@@ -627,7 +627,7 @@ class TrackingEnv:
                           self.ref_joint_pos[frame]], dim=-1)
         qvel = self.ref_qvel[frame].clone()
         qvel[:, 0:3] += self.offset_vel_table[sample, frame]
-        if self.cfg.rsi_prob > 0:
+        if self.cfg.rsi_prob > 0 and bool(self.rsi_vel_noise.any()):  # draws nothing when off: same RNG stream
             started_late = (frame > 0)[:, None].to(qvel.dtype)
             qvel[:, 0:6] += started_late * self.rsi_vel_noise * (2.0 * torch.rand(n, 6, device=dev) - 1.0)
         self.backend.set_state(ids, qpos, qvel)
