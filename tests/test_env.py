@@ -386,6 +386,8 @@ def test_reset_state_velocity_noise_only_on_late_starts(data):
     assert np.allclose(env.backend.qvel[:, 6:].numpy(), data.motion.joint_vel[frames], atol=1e-4)
     with pytest.raises(PipelineInputError, match="rsi_lin_vel_noise"):
         quiet_cfg(rsi_lin_vel_noise=[0.5, -0.1, 0.0])
+    with pytest.raises(PipelineInputError, match="rsi_ang_vel_noise"):
+        quiet_cfg(rsi_ang_vel_noise=["fast", 0.0, 0.0])
 
 
 def test_domain_randomisation_ranges_applied(data):
