@@ -122,9 +122,10 @@ def report(label: str, ev: dict, episodes: list, data) -> None:
 
 def funnel_line(episodes: list, data) -> str:
     """`0.10 100 (12) | 0.40 100 (30) | ... | 1.48 landing 62 (310)`: where the episodes are lost."""
+    from pipeline.evaluation.metrics import SUCCESS_THRESHOLD_M
     from pipeline.evaluation.run import funnel_rows
 
-    rows = funnel_rows([{"all": episodes}], data, 1.0)
+    rows = funnel_rows(episodes, data, SUCCESS_THRESHOLD_M)
     return " | ".join(f"{r['time_s']:.2f}{' ' + r['label'] if r['label'] else ''} {r['reached']:.0f} "
                       f"({r['e_g_bpe']:.0f})" for r in rows)
 

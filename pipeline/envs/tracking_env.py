@@ -155,7 +155,8 @@ class TrackingEnv:
         self.kf_target_pos = self._tensor(m.body_pos[kf][None] + np.asarray(d.keyframe_offsets)[:, :, None])  # (S,K,B,3)
         self.kf_target_quat = self._tensor(m.body_quat[kf])  # (K,B,4): edits only translate
         self.rsi_frame_table = torch.as_tensor(self._rsi_frames(kf, d.keyframe_labels, t), device=self.device)
-        self.rsi_vel_noise = self._tensor(list(self.cfg.rsi_lin_vel_noise) + list(self.cfg.rsi_ang_vel_noise))
+        noise = list(self.cfg.rsi_lin_vel_noise) + list(self.cfg.rsi_ang_vel_noise)
+        self.rsi_vel_noise = self._tensor(noise) if self.cfg.rsi_prob > 0 and any(noise) else None
         # An episode that starts at or after the first edited keyframe never meets the edit: the
         # sampler learns nothing about its ψ from it.
         edited = kf[np.asarray(d.edited, dtype=bool)]
@@ -627,7 +628,7 @@ class TrackingEnv:
                           self.ref_joint_pos[frame]], dim=-1)
         qvel = self.ref_qvel[frame].clone()
         qvel[:, 0:3] += self.offset_vel_table[sample, frame]
-        if self.cfg.rsi_prob > 0 and bool(self.rsi_vel_noise.any()):  # draws nothing when off: same RNG stream
+        if self.rsi_vel_noise is not None:  # None when off: no draw, the same random stream as without it
             started_late = (frame > 0)[:, None].to(qvel.dtype)
             qvel[:, 0:6] += started_late * self.rsi_vel_noise * (2.0 * torch.rand(n, 6, device=dev) - 1.0)
         self.backend.set_state(ids, qpos, qvel)

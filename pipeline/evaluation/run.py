@@ -65,7 +65,8 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
                            {"episodes_per_range": eval_cfg.episodes_per_range, "runs": eval_cfg.runs,
                             "psi_raw": float(data.psi_raw),
                             "domain_randomization": eval_cfg.domain_randomization, "policy_stage": meta.get("stage")})
-    doc["keyframe_funnel"] = funnel_rows(result.runs, data, eval_cfg.success_threshold_m)
+    pooled = [e for run in result.runs for name in run for e in run[name]]
+    doc["keyframe_funnel"] = funnel_rows(pooled, data, eval_cfg.success_threshold_m)
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -84,10 +85,8 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
     return doc
 
 
-def funnel_rows(runs, data, threshold: float) -> list[dict]:
-    """metrics.keyframe_funnel over every episode of every run and range, with each keyframe's
-    reference time and label."""
-    episodes = [e for run in runs for name in run for e in run[name]]
+def funnel_rows(episodes, data, threshold: float) -> list[dict]:
+    """metrics.keyframe_funnel over `episodes` (EpisodeMetrics), with each keyframe's reference time and label."""
     rows = keyframe_funnel(episodes, data.num_keyframes, threshold)
     for row, frame, label in zip(rows, data.keyframe_frames, data.keyframe_labels):
         row["time_s"] = float(frame) / data.motion.fps

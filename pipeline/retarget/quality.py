@@ -163,8 +163,6 @@ def joint_report(motion: Motion, model: mujoco.MjModel) -> dict:
     }
 
 
-
-
 def balance_report(motion: Motion, heights: GeomHeights, contacts: np.ndarray) -> dict:
     """See `balance` in the module docstring. contacts: (T, 2) bool, per foot."""
     margin = heights.support_margin(motion)
