@@ -280,6 +280,25 @@ def test_keyframe_error_termination_and_curriculum(data):
     assert not term.any()
 
 
+def test_keyframe_error_measure_max_or_mean(data):
+    """One body's keyframe target 1 m off, the others exact: past 0.6 m for the worst body, about
+    1/17 m for the bodies' mean."""
+    offsets = np.repeat(data.keyframe_offsets[:, :, None, :], len(data.motion.body_names), axis=2)
+    offsets[:, :, data.motion.body_names.index("head"), 2] += 1.0
+    target = data.motion.body_pos[data.keyframe_frames][None] + offsets
+    ends = {}
+    for measure in ("max", "mean"):
+        env = TrackingEnv(quiet_cfg(terminations={"keyframe_error": {"measure": measure}}), data, num_envs=N)
+        env.kf_target_pos = torch.as_tensor(target, dtype=env.kf_target_pos.dtype)
+        env.set_termination_threshold(0.6)
+        env.reset()
+        for _ in range(KEYFRAMES[0]):
+            _, _, term, _, info = env.step(hold(env))
+        assert info["keyframe_crossed"].all()
+        ends[measure] = bool(term.all()), bool(info["terminated_by"]["keyframe_error"].any())
+    assert ends == {"max": (True, True), "mean": (False, False)}
+
+
 def test_penalty_curriculum_follows_the_fall_rate(data):
     env = TrackingEnv(quiet_cfg(), data, num_envs=N)
     assert env.penalty_scale == 1.0  # outside training: the paper's weights

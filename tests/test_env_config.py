@@ -44,6 +44,7 @@ def test_partial_override_and_errors_name_the_key():
         ({"randomization": {"friction": {"low": 2.0, "high": 1.0}}}, "randomization.friction"),
         ({"randomization": {"push": {"enabled": "yes"}}}, "env.randomization.push.enabled"),
         ({"terminations": {"keyframe_error": {"start": 3.0}}}, "keyframe_error"),
+        ({"terminations": {"keyframe_error": {"measure": "median"}}}, "keyframe_error.measure"),
         ({"rewards": {"sigma2": {"feet_pos": 0}}}, "sigma2.feet_pos"),
         ({"rewards": "x"}, "env.rewards"),
     ]

@@ -298,6 +298,12 @@ class TrackingEnv:
         self.termination_threshold = float(min(max(value, c.min), c.max))
         return self.termination_threshold
 
+    def _keyframe_error_exceeded(self, err2: torch.Tensor) -> torch.Tensor:
+        """(N, bodies) squared position errors -> (N,) past the keyframe-error termination threshold."""
+        if self.cfg.terminations.keyframe_error.measure == "mean":
+            return err2.sqrt().mean(-1) > self.termination_threshold
+        return err2.max(-1).values > self.termination_threshold**2
+
     def update_curriculum(self, progress: float) -> float:
         """Called once per training iteration. Sets the keyframe-error termination threshold
         (returned) from training progress p ∈ [0, 1], and the dense penalty scale (`penalty_scale`)
@@ -404,7 +410,7 @@ class TrackingEnv:
         if cfg.variant.tracking == "dense":
             g = self._global_terms(err2_w, site_quat, self.ref_body_quat[frame])
             dense = dense + w.global_body_pos * g[0] + w.global_body_rot * g[1] + w.global_feet_pos * g[2]
-            terminated |= err2_w.max(-1).values > self.termination_threshold**2
+            terminated |= self._keyframe_error_exceeded(err2_w)
         by_keyframe = terminated.clone()
 
         # ---- sparse group: only worlds crossing a keyframe this step
@@ -421,7 +427,7 @@ class TrackingEnv:
                 g = self._global_terms(err2, site_quat[ids], self.kf_target_quat[k])
                 sparse[ids] = self.kf_scale[k] * (w.global_body_pos * g[0] + w.global_body_rot * g[1]
                                                   + w.global_feet_pos * g[2])
-                by_keyframe[ids] |= err2.max(-1).values > self.termination_threshold**2
+                by_keyframe[ids] |= self._keyframe_error_exceeded(err2)
                 terminated |= by_keyframe
 
         # ---- terminations
