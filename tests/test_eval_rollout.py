@@ -9,7 +9,7 @@ import torch
 from pipeline.common.errors import PipelineInputError
 from pipeline.evaluation.config import EvalConfig
 from pipeline.evaluation.evaluate import PolicyRunner, evaluate_policy, range_mask, rollout, spread_in_ranges
-from pipeline.evaluation.metrics import aggregate, episode_metrics
+from pipeline.evaluation.metrics import aggregate, episode_metrics, pooled_episodes
 from pipeline.evaluation.report import results_table
 from test_env import data, quiet_cfg  # noqa: F401  (a 61-frame standing clip; targets moved forward by ψ)
 
@@ -73,8 +73,7 @@ def test_real_env_smoke_and_bad_range():
     from pipeline.evaluation.run import funnel_rows
 
     doc = metrics_document("far_jump", "adamimic", result.runs, result.psi_ranges)
-    pooled = [e for run in result.runs for name in run for e in run[name]]
-    doc["keyframe_funnel"] = funnel_rows(pooled, data, cfg.success_threshold_m)
+    doc["keyframe_funnel"] = funnel_rows(pooled_episodes(result.runs), data, cfg.success_threshold_m)
     assert math.isfinite(doc["ranges"]["overall"]["e_l_bpe"]["mean"])
     assert [r["time_s"] for r in doc["keyframe_funnel"]] == pytest.approx(data.keyframe_frames / data.motion.fps)
     assert doc["keyframe_funnel"][-1]["on_track"] == pytest.approx(doc["ranges"]["overall"]["success"]["mean"])

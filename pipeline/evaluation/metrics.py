@@ -217,6 +217,11 @@ def _reach(episodes: list[EpisodeMetrics]) -> dict[str, float]:
             "psi_reached_max": float(reached[ok].max()) if ok.any() else float("nan")}
 
 
+def pooled_episodes(runs: list[dict[str, list[EpisodeMetrics]]]) -> list[EpisodeMetrics]:
+    """Every episode of every run and range, in one list."""
+    return [e for run in runs for name in run for e in run[name]]
+
+
 def aggregate_ranges(runs: list[dict[str, list[EpisodeMetrics]]]) -> dict[str, dict[str, dict[str, float]]]:
     """Per range (easy, hard, and overall = their union) mean ± std over runs of each metric.
 

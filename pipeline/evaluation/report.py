@@ -23,6 +23,7 @@ from pipeline.evaluation.metrics import (
     EpisodeRecord,
     aggregate_ranges,
     bin_by_psi,
+    pooled_episodes,
 )
 
 RANGE_ORDER = ("easy", "hard", "overall")
@@ -40,7 +41,7 @@ def write_metrics(path: str | Path, doc: dict) -> None:
 
 def per_psi_rows(runs: list[dict[str, list[EpisodeMetrics]]], psi_ranges: dict, points: int) -> list[dict]:
     """Metrics in `points` equal ψ bins over the union of the ranges, all runs pooled."""
-    episodes = [e for run in runs for name in run for e in run[name]]
+    episodes = pooled_episodes(runs)
     lo = min(i[0] for v in psi_ranges.values() for i in v)
     hi = max(i[1] for v in psi_ranges.values() for i in v)
     rows = bin_by_psi(episodes, np.linspace(lo, hi, points + 1))

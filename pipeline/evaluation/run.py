@@ -27,7 +27,7 @@ from pipeline.evaluation.evaluate import (
     spread_in_ranges,
     trace_episode,
 )
-from pipeline.evaluation.metrics import keyframe_funnel
+from pipeline.evaluation.metrics import keyframe_funnel, pooled_episodes
 from pipeline.evaluation.report import metrics_document, per_psi_rows, plot_adapters, plot_per_psi, write_metrics, write_per_psi
 
 
@@ -65,8 +65,7 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
                            {"episodes_per_range": eval_cfg.episodes_per_range, "runs": eval_cfg.runs,
                             "psi_raw": float(data.psi_raw),
                             "domain_randomization": eval_cfg.domain_randomization, "policy_stage": meta.get("stage")})
-    pooled = [e for run in result.runs for name in run for e in run[name]]
-    doc["keyframe_funnel"] = funnel_rows(pooled, data, eval_cfg.success_threshold_m)
+    doc["keyframe_funnel"] = funnel_rows(pooled_episodes(result.runs), data, eval_cfg.success_threshold_m)
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
