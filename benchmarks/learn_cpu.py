@@ -171,8 +171,9 @@ def main() -> None:
     print(f"[learn_cpu] far_jump frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
-    overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": 100000,
-                                      "save_interval": 50}}
+    # Sized by time: 0 iterations train until the limit, and the curricula follow the clock.
+    overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": 0,
+                                      "time_limit_stage1_s": args.minutes * 60.0, "save_interval": 50}}
     if args.envs:
         overrides["train"]["ppo"] = {"num_envs": args.envs}
     for item in args.set:
@@ -182,8 +183,7 @@ def main() -> None:
     out = args.out or Path(tempfile.mkdtemp(prefix="learn_cpu_"))
     torch.set_num_threads(2)
     t1 = time.time()
-    metrics = train_stage1(data, env_cfg, cfg, out, time_limit_s=args.minutes * 60.0, tensorboard=False,
-                           progress=False, log=print)
+    metrics = train_stage1(data, env_cfg, cfg, out, tensorboard=False, progress=False, log=print)
     minutes = (time.time() - t1) / 60.0
 
     import json
@@ -217,10 +217,11 @@ def main() -> None:
     if args.stage2_minutes > 0:
         from pipeline.rl.trainer import train_stage2
 
-        stage2_cfg = TrainConfig.from_dict({**overrides["train"], "variant": "adamimic", "iterations_stage2": 100000})
+        stage2_cfg = TrainConfig.from_dict({**overrides["train"], "variant": "adamimic", "iterations_stage2": 0,
+                                            "time_limit_stage2_s": args.stage2_minutes * 60.0})
         t2 = time.time()
-        train_stage2(data, env_cfg, stage2_cfg, out / "stage2", stage1_dir=out / "policy",
-                     time_limit_s=args.stage2_minutes * 60.0, tensorboard=False, progress=False, log=print)
+        train_stage2(data, env_cfg, stage2_cfg, out / "stage2", stage1_dir=out / "policy", tensorboard=False,
+                     progress=False, log=print)
         ev2, episodes2 = evaluate_from_start(out / "stage2" / "policy", data, env_cfg)
         report(f"stage 2 after {(time.time() - t2) / 60:.1f} more minutes, same episodes", ev2, episodes2, data)
     print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")

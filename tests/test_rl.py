@@ -253,6 +253,40 @@ def test_resume_reproduces_the_next_iteration_bit_for_bit(tmp_path):
     assert [h["policy_loss"] for h in straight.history] == [h["policy_loss"] for h in resumed.history]
 
 
+def test_curricula_follow_iterations_not_the_clock(tmp_path, monkeypatch):
+    """A time limit only caps a run: on a slow (or busy) machine the same config trains the same policy,
+    unless the cap stops it, which the run then reports. Sized by time alone (0 iterations), the curricula
+    follow the clock."""
+    import pipeline.rl.trainer as trainer_module
+
+    cfg = small_cfg(ppo={"num_envs": 16, "steps_per_iteration": 4, "epochs": 1, "minibatches": 1})
+    fast = _trainer(tmp_path / "fast", cfg, seed=0)
+    fast.run(4)
+    clock = iter(range(0, 10_000, 7))  # every reading 7 s later: 4 iterations take far more than 60 s of "wall time"
+    monkeypatch.setattr(trainer_module.time, "time", lambda: float(next(clock)))
+    slow = _trainer(tmp_path / "slow", cfg, seed=0)
+    metrics = slow.run(4, time_limit_s=1000.0)
+    assert slow.env.curriculum_calls == fast.env.curriculum_calls == [0.0, 0.25, 0.5, 0.75]
+    for a, b in zip(fast.policy.state_dict().values(), slow.policy.state_dict().values()):
+        assert torch.equal(a, b)
+    assert metrics["stopped_by_time_limit"] is False
+
+    messages = []
+    capped = _trainer(tmp_path / "capped", cfg, seed=0)
+    capped.log = messages.append
+    metrics = capped.run(4, time_limit_s=20.0)
+    assert metrics["iterations"] < 4 and metrics["stopped_by_time_limit"] is True
+    assert any("time limit stopped it at iteration" in m for m in messages), messages
+    assert json.loads((tmp_path / "capped" / "metrics.json").read_text())["stopped_by_time_limit"] is True
+
+    by_time = _trainer(tmp_path / "by_time", cfg, seed=0)
+    metrics = by_time.run(0, time_limit_s=60.0)
+    calls = by_time.env.curriculum_calls
+    assert metrics["iterations"] == len(calls) >= 2 and calls == sorted(calls) and 0 < calls[-1] <= 1.0
+    with pytest.raises(ValueError, match="time limit"):
+        _trainer(tmp_path / "none", cfg, seed=0).run(0)
+
+
 # ------------------------------------------------------------------------------------------ AMP
 def test_amp_style_reward_in_sparse_group(tmp_path):
     cfg = small_cfg(variant="amp_style")

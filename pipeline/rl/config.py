@@ -120,10 +120,11 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     backend: str = "cpu"
-    iterations_stage1: int = 300
+    iterations_stage1: int = 300  # 0: train until the stage's time limit
     iterations_stage2: int = 150
     # Optional wall-clock caps (seconds, 0 = none): a stage stops at its iteration count or its cap,
-    # whichever comes first, and its curricula follow the larger of the two progress fractions.
+    # whichever comes first. The curricula follow the iteration count (wall time only when it is 0), so
+    # a run is the same on any machine unless the cap stops it, which it then reports.
     time_limit_stage1_s: float = 0.0
     time_limit_stage2_s: float = 0.0
     save_interval: int = 25
@@ -164,6 +165,9 @@ def _validate(cfg: TrainConfig, where: str) -> None:
         (p.learning_rate > 0, "ppo.learning_rate", "must be > 0"),
         (cfg.iterations_stage1 >= 0, "iterations_stage1", "must be >= 0"),
         (cfg.iterations_stage2 >= 0, "iterations_stage2", "must be >= 0"),
+        (cfg.iterations_stage1 > 0 or cfg.time_limit_stage1_s > 0, "iterations_stage1", "0 trains until time_limit_stage1_s: set it > 0"),
+        (cfg.iterations_stage2 > 0 or cfg.time_limit_stage2_s > 0, "iterations_stage2", "0 trains until time_limit_stage2_s: set it > 0"),
+        (cfg.time_limit_stage1_s >= 0 and cfg.time_limit_stage2_s >= 0, "time_limit_stage1_s", "must be >= 0"),
         (cfg.save_interval > 0, "save_interval", "must be > 0"),
         (cfg.keep_checkpoints >= 1, "keep_checkpoints", "must be >= 1"),
         (cfg.network.activation in ACTIVATIONS, "network.activation", f"one of {sorted(ACTIVATIONS)}"),

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 import json
 import math
 import sys
@@ -190,23 +191,29 @@ class Trainer:
 
     # -- the loop ---------------------------------------------------------------------------
     def run(self, iterations: int, resume: bool = False, time_limit_s: float | None = None) -> dict:
-        """Trains up to `iterations` (or until `time_limit_s` of wall time), saving as it goes."""
+        """Trains `iterations` (0: until `time_limit_s` of wall time), saving as it goes.
+
+        The curricula follow the iteration count, so the same config trains the same policy on any
+        machine, however busy; a time limit only stops a slow run early, and the run says so. A run
+        sized by time alone (`iterations` 0) has no count to follow: its curricula follow wall time."""
+        by_time = iterations <= 0
+        if by_time and not (time_limit_s and time_limit_s > 0):
+            raise ValueError("a run with 0 iterations trains until its time limit: give time_limit_s > 0")
         start, obs = 0, None
         if resume:
             start, obs = self._restore()
         if start == 0:
             self._warm_up_normalizers()
         writer = self._writer()
-        t0 = time.time()
-        bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=f"stage {self.stage}",
+        # Wall time counts across resumes, so a time limit caps the whole run.
+        t0 = time.time() - (self.history[-1]["seconds"] if self.history else 0.0)
+        steps = itertools.count(start) if by_time else range(start, iterations)
+        bar = tqdm(steps, initial=start, total=None if by_time else iterations, desc=f"stage {self.stage}",
                    disable=not self.progress, mininterval=2.0, file=sys.stderr)
+        stopped_early = False
         for it in bar:
             obs = self._boundary(it, obs)
-            # Training progress for the curriculum: by iterations, or by wall time when a time limit
-            # ends the run first (else a run sized by time would never leave the curriculum's start).
-            progress = it / max(iterations, 1)
-            if time_limit_s is not None and time_limit_s > 0:
-                progress = max(progress, (time.time() - t0) / time_limit_s)
+            progress = min((time.time() - t0) / time_limit_s, 1.0) if by_time else it / iterations
             self._curriculum(progress)
             self.policy.train()
             rollout, obs, extra = self.collect(obs)
@@ -231,16 +238,21 @@ class Trainer:
                     if isinstance(v, (int, float)) and math.isfinite(v):
                         writer.add_scalar(f"stage{self.stage}/{k}", v, it + 1)
             bar.set_postfix(success=f"{stats.get('success_rate', float('nan')):.2f}", ret=f"{stats.get('return_sparse', float('nan')):.1f}")
-            out_of_time = time_limit_s is not None and time.time() - t0 > time_limit_s
+            out_of_time = time_limit_s is not None and time_limit_s > 0 and time.time() - t0 > time_limit_s
             if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations or out_of_time:
                 self._save(it + 1, obs)
             if out_of_time:
+                if not by_time and it + 1 < iterations:
+                    stopped_early = True
+                    self.log(f"[train] stage {self.stage}: the {time_limit_s:.0f} s time limit stopped it at iteration "
+                             f"{it + 1} of {iterations}, its curricula {progress:.0%} through; a longer limit (or a "
+                             f"quieter machine) trains what the config asks")
                 iterations = it + 1
                 break
         bar.close()
         if writer is not None:
             writer.close()
-        return self._finish(iterations)
+        return self._finish(iterations, stopped_early)
 
     @torch.no_grad()
     def _warm_up_normalizers(self) -> None:
@@ -313,13 +325,14 @@ class Trainer:
 
         return SummaryWriter(str(self.run_dir / "tensorboard"))
 
-    def _finish(self, iterations: int) -> dict:
+    def _finish(self, iterations: int, stopped_by_time_limit: bool = False) -> dict:
         save_policy(self.run_dir / "policy", self.policy, self.critic, dict(self.meta, iteration=iterations))
         last = self.history[-1] if self.history else {}
         metrics = {"stage": self.stage, "variant": self.cfg.variant, "iterations": iterations,
                    "success_rate": last.get("success_rate"), "return_sparse": last.get("return_sparse"),
                    "return_dense": last.get("return_dense"), "episodes_in_window": last.get("episodes"),
-                   "env_steps": last.get("env_steps"), "train_seconds": last.get("seconds")}
+                   "env_steps": last.get("env_steps"), "train_seconds": last.get("seconds"),
+                   "stopped_by_time_limit": stopped_by_time_limit}
         write_text_atomic(self.run_dir / "metrics.json", json.dumps(metrics, indent=2))
         write_text_atomic(self.run_dir / "history.json", json.dumps(self.history))
         plot_curve(self.history, self.run_dir / "training_curve.png", f"stage {self.stage} ({self.cfg.variant})")
