@@ -24,13 +24,12 @@ robot sags 0.37 m low by the take-off and falls before the landing (benchmarks/R
 
 from __future__ import annotations
 
-import copy
-
 import mujoco
 import numpy as np
 
 from pipeline.motion.motion import Motion
-from pipeline.robot.g1 import RobotConfig, build_model, load_robot_config
+from pipeline.robot.dynamics import joint_torques
+from pipeline.robot.g1 import RobotConfig, load_robot_config
 
 # A foot whose lowest sole point is this close to the floor carries load (the retarget's contact
 # labelling uses 6 cm with a speed test; lower here so a foot leaving the ground stops carrying).
@@ -39,35 +38,13 @@ CONTACT_HEIGHT_M = 0.04
 
 def reference_joint_torques(motion: Motion, robot: RobotConfig | None = None,
                             model: mujoco.MjModel | None = None) -> np.ndarray:
-    """(T, J) joint torques (N·m) that produce `motion` with its base carried by the feet in contact."""
+    """(T, J) joint torques (N·m) that produce `motion` with its base carried by the feet in contact,
+    clipped to the motors' effort limits."""
     from pipeline.keyframes.select import foot_height_and_speed
 
     robot = robot or load_robot_config()
-    model = model or build_model()
-    model = _without_contacts(model)
-    data = mujoco.MjData(model)
-    qpos, qvel = motion.qpos(), motion.qvel()
-    qacc = np.gradient(qvel, motion.dt, axis=0)
-    foot_height, _ = foot_height_and_speed(motion)
-    feet = [model.body(robot.feet[side]["body"]).id for side in ("left", "right")]  # foot_height's order
-    nv = model.nv
-    jac_pos, jac_rot = np.zeros((3, nv)), np.zeros((3, nv))
-    torques = np.zeros((motion.num_frames, nv - 6))
-    for t in range(motion.num_frames):
-        data.qpos[:], data.qvel[:], data.qacc[:] = qpos[t], qvel[t], qacc[t]
-        mujoco.mj_inverse(model, data)
-        generalized = data.qfrc_inverse.copy()
-        rows = []
-        for foot, height in zip(feet, foot_height[t]):
-            if height < CONTACT_HEIGHT_M:
-                mujoco.mj_jacBody(model, data, jac_pos, jac_rot, foot)
-                rows.append(np.vstack([jac_pos, jac_rot]))
-        if rows:
-            jac = np.vstack(rows)  # (6·feet, nv)
-            wrench, *_ = np.linalg.lstsq(jac[:, :6].T, generalized[:6], rcond=None)
-            torques[t] = generalized[6:] - jac[:, 6:].T @ wrench
-        else:
-            torques[t] = generalized[6:]
+    foot_height, _ = foot_height_and_speed(motion)  # (T, 2): left, right
+    torques = joint_torques(motion, foot_height < CONTACT_HEIGHT_M, robot, model)
     return np.clip(torques, -robot.effort_limit, robot.effort_limit)
 
 
@@ -78,13 +55,6 @@ def feedforward_joint_targets(motion: Motion, robot: RobotConfig | None = None,
     robot = robot or load_robot_config()
     torques = reference_joint_torques(motion, robot, model)
     return motion.joint_pos + (robot.kd * motion.joint_vel + torques) / robot.kp
-
-
-def _without_contacts(model: mujoco.MjModel) -> mujoco.MjModel:
-    """A copy whose inverse dynamics ignore contacts (the feet's wrenches are solved for instead)."""
-    model = copy.copy(model)
-    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
-    return model
 
 
 def zero_action_targets(motion: Motion, action_offset: str, robot: RobotConfig | None = None,
