@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from pipeline.keyframes.config import TaskConfig
-from pipeline.keyframes.select import detect_foot_contacts, find_flights, select_keyframes
+from pipeline.keyframes.select import find_flights, select_keyframes
+from pipeline.motion.feet import detect_foot_contacts
 from pipeline.keyframes.synthetic import Flight, synthetic_jump_motion, true_flight_frames
 
 FAR_JUMP = Path(__file__).resolve().parents[2] / "shared/data/adamimic_smpl/far_jump.npz"

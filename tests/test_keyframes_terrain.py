@@ -10,7 +10,8 @@ import pytest
 from pipeline.common.errors import PipelineInputError
 from pipeline.keyframes.config import TaskConfig, load_tasks, load_yaml_strict
 from pipeline.keyframes.edit import build_tracking_data
-from pipeline.keyframes.select import foot_height_and_speed, select_keyframes, sole_points_world
+from pipeline.keyframes.select import select_keyframes
+from pipeline.motion.feet import foot_height_and_speed, sole_points_world
 from pipeline.keyframes.synthetic import Flight, synthetic_jump_motion
 from pipeline.keyframes.terrain import apply_layout, terrain_builder, terrain_layout
 from pipeline.robot.g1 import build_spec

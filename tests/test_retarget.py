@@ -49,6 +49,11 @@ def test_far_jump_quality(far_jump):
     assert report["foot_skate_max_mm_per_frame"] <= 5.0
     assert report["keypoint_err_mm"] <= 15.0
     assert report["max_joint_vel_rad_s"] < 37.0  # fastest G1 motor
+    # The person pushed off with more ankle torque than the G1's 50 N·m (benchmarks/RESULTS.md): the
+    # torque check says so, and not about the knees, which have room.
+    torque = report["torque"]
+    assert torque["peak_joint"].endswith("ankle_pitch_joint") and torque["peak_effort_ratio"] > 1.5
+    assert torque["joints_over_limit"].get("left_knee_joint", 0.0) < 1.2
     # Body poses are the robot's own FK of root + joints.
     from pipeline.motion.motion import RobotKinematics
 

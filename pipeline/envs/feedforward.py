@@ -11,11 +11,9 @@ With the feedforward target
     q* = q_ref + (Kd q̇_ref + τ_ref) / Kp
 
 the actuator applies Kp (q_ref − q) + Kd (q̇_ref − q̇) + τ_ref: a PD on both position and velocity
-errors plus the reference's joint torques. τ_ref is the reference's inverse dynamics (mj_inverse with
-contacts disabled): the floating base's share of it — the wrench that gravity and the motion ask of
-the ground — is carried by the feet that stand on the ground (least-norm 6-D wrenches at the ankle
-bodies), and the joints supply the rest through the feet's Jacobian. Torques are clipped to the motors'
-effort limits. In the air no foot can carry anything and the joints get their own rows of τ alone.
+errors plus the reference's joint torques. τ_ref is the reference's inverse dynamics
+(`robot/dynamics.py`: the base carried by the feet on the ground, the joints supplying the rest),
+clipped to the motors' effort limits.
 
 On the shared far jump, replaying the reference open-loop (a zero action) around these targets crosses
 the take-off keyframe 0.15 m from it and lands 0.24 m short; around the bare reference joints the
@@ -27,24 +25,19 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from pipeline.motion.feet import detect_foot_contacts
 from pipeline.motion.motion import Motion
 from pipeline.robot.dynamics import joint_torques
 from pipeline.robot.g1 import RobotConfig, load_robot_config
 
-# A foot whose lowest sole point is this close to the floor carries load (the retarget's contact
-# labelling uses 6 cm with a speed test; lower here so a foot leaving the ground stops carrying).
-CONTACT_HEIGHT_M = 0.04
-
 
 def reference_joint_torques(motion: Motion, robot: RobotConfig | None = None,
                             model: mujoco.MjModel | None = None) -> np.ndarray:
-    """(T, J) joint torques (N·m) that produce `motion` with its base carried by the feet in contact,
-    clipped to the motors' effort limits."""
-    from pipeline.keyframes.select import foot_height_and_speed
-
+    """(T, J) joint torques (N·m) that produce `motion` with its base carried by the feet on the ground
+    (`motion/feet.py`, the contacts the keyframe stage finds take-offs and landings with, so a foot on a
+    box carries too), clipped to the motors' effort limits."""
     robot = robot or load_robot_config()
-    foot_height, _ = foot_height_and_speed(motion)  # (T, 2): left, right
-    torques = joint_torques(motion, foot_height < CONTACT_HEIGHT_M, robot, model)
+    torques = joint_torques(motion, detect_foot_contacts(motion), robot, model)
     return np.clip(torques, -robot.effort_limit, robot.effort_limit)
 
 

@@ -10,10 +10,8 @@ in `metrics.py`; outputs are a metrics json, per-ψ csv/json (DVC plots), pngs a
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Callable
 
 import numpy as np

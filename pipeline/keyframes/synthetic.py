@@ -35,7 +35,7 @@ def synthetic_jump_motion(flights: list[Flight], duration: float, fps: float = 5
         j = list(kin.joint_names).index("right_shoulder_pitch_joint")
         joints[:, j] += -1.2 * 0.5 * (1.0 + np.tanh((t - hit_time) / 0.06))
     # Root height with the soles touching z = 0 in the default pose.
-    from pipeline.keyframes.select import foot_height_and_speed
+    from pipeline.motion.feet import foot_height_and_speed
 
     probe = kin.motion(fps, np.array([[0, 0, cfg.default_root_height]] * 2), np.array([[1.0, 0, 0, 0]] * 2),
                        joints[:2])

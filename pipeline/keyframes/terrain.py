@@ -38,7 +38,7 @@ def _edit_shares(keyframes) -> np.ndarray:
 def resolve_terrain(task: TaskConfig, motion, keyframes) -> dict:
     """The task's terrain declaration with its anchors measured on the motion (JSON-ready)."""
     from pipeline.keyframes.edit import edit_direction
-    from pipeline.keyframes.select import foot_height_and_speed, sole_points_world
+    from pipeline.motion.feet import foot_height_and_speed, sole_points_world
 
     cfg = task.terrain
     out = cfg.to_dict()

@@ -12,7 +12,6 @@ from __future__ import annotations
 import time
 from functools import lru_cache
 
-import mujoco
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
@@ -21,9 +20,9 @@ from pipeline.motion.motion import Motion, RobotKinematics
 from pipeline.retarget import contacts as contact_ops
 from pipeline.retarget.config import RetargetConfig
 from pipeline.retarget.ik import make_retargeter
-from pipeline.retarget.quality import GeomHeights, balance_report, foot_skate, joint_report, keypoint_error
+from pipeline.retarget.quality import GeomHeights, balance_report, foot_skate, joint_report, keypoint_error, torque_report
 from pipeline.retarget.skeleton import RobotGeometry, body_scale, transfer_skeleton
-from pipeline.robot.g1 import build_model, joint_limits
+from pipeline.robot.g1 import build_model, joint_limits, load_robot_config
 
 MIN_DURATION_S = 1.0
 
@@ -111,6 +110,7 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
         **joint_report(out, model),
         "jump": jump_summary(out.root_pos, out_contacts, fps_out),
         "balance": balance_report(out, heights, out_contacts),
+        "torque": torque_report(out, model, load_robot_config()),
         "human_jump_scaled": jump_summary(scale * human.joint_pos[:, 0], contacts, human.fps),
     }
     return out, report

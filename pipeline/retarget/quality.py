@@ -23,6 +23,14 @@ Definitions (all on the final 50 Hz motion unless said):
                             or lift-off: where it leaves the feet the motion is dynamically infeasible
                             (zmp_inside_support_min_mm < 0), e.g. a landing that stops the body dead and
                             restarts it; and when (zmp_worst_time_s).
+  torque                    can the motors make the motion? The joint torques of its inverse dynamics
+                            (robot/dynamics.py: the base carried by the feet on the ground, velocities and
+                            accelerations from the same cubic fits over 0.2 s) against each motor's effort
+                            limit, over every frame except the 3 either side of a touch-down or lift-off:
+                            the largest |torque| / limit (above 1 the clip asks a motor for more than it
+                            has, e.g. a push-off the person made with stronger ankles), at which joint and
+                            when, on how many frames some joint is over its limit, and the peak ratio of
+                            each joint that is.
 """
 
 from __future__ import annotations
@@ -32,8 +40,10 @@ import numpy as np
 from scipy.signal import savgol_filter
 from scipy.spatial import ConvexHull
 
+from pipeline.motion.feet import detect_foot_contacts
 from pipeline.motion.motion import Motion
-from pipeline.robot.g1 import joint_limits
+from pipeline.robot.dynamics import joint_torques, smoothed_velocity_and_acceleration
+from pipeline.robot.g1 import RobotConfig, joint_limits
 
 SLOW_COM_SPEED = 0.3  # m/s
 SLOW_COM_ACCEL = 1.0  # m/s^2
@@ -163,6 +173,15 @@ def joint_report(motion: Motion, model: mujoco.MjModel) -> dict:
     }
 
 
+def away_from_contact_changes(contacts: np.ndarray, frames: int = ZMP_SETTLE_FRAMES) -> np.ndarray:
+    """(T,) bool: frames more than `frames` from a touch-down or lift-off. Impacts happen between two
+    frames; accelerations taken from a kinematic reference smear them over their neighbours."""
+    keep = np.ones(len(contacts), dtype=bool)
+    for c in np.flatnonzero(np.any(np.diff(contacts, axis=0), axis=1)):
+        keep[max(c + 1 - frames, 0) : c + 1 + frames] = False
+    return keep
+
+
 def balance_report(motion: Motion, heights: GeomHeights, contacts: np.ndarray) -> dict:
     """See `balance` in the module docstring. contacts: (T, 2) bool, per foot."""
     margin = heights.support_margin(motion)
@@ -173,12 +192,8 @@ def balance_report(motion: Motion, heights: GeomHeights, contacts: np.ndarray) -
     both = contacts.all(axis=1)
     checked = slow & both
     inside = margin["inside"][checked]
-    # The zero-moment point, over double support away from touch-downs and lift-offs (impacts, which
-    # accelerations taken from a kinematic reference cannot resolve).
-    changes = np.flatnonzero(np.any(np.diff(contacts, axis=0), axis=1))
-    settled = both.copy()
-    for c in changes:
-        settled[max(c + 1 - ZMP_SETTLE_FRAMES, 0) : c + 1 + ZMP_SETTLE_FRAMES] = False
+    # The zero-moment point, over double support away from touch-downs and lift-offs.
+    settled = both & away_from_contact_changes(contacts)
     zmp = margin["zmp_inside"]
     worst = int(np.flatnonzero(settled)[np.argmin(zmp[settled])]) if settled.any() else None
     return {"com_inside_support_min_mm": 1e3 * float(inside.min()) if inside.size else None,
@@ -186,3 +201,29 @@ def balance_report(motion: Motion, heights: GeomHeights, contacts: np.ndarray) -
             "zmp_inside_support_min_mm": None if worst is None else 1e3 * float(zmp[worst]),
             "zmp_worst_time_s": None if worst is None else worst * motion.dt,
             "zmp_frames_checked": int(settled.sum())}
+
+
+def torque_report(motion: Motion, model: mujoco.MjModel, robot: RobotConfig) -> dict:
+    """See `torque` in the module docstring. The feet that carry the body are the robot's own
+    (`motion/feet.py`): the human's contact labels miss the toe-off of a push-off, where the sole rolls
+    and moves, and that is where a jump asks the most of the ankles."""
+    contacts = detect_foot_contacts(motion)
+    qvel, qacc = smoothed_velocity_and_acceleration(motion, ZMP_SMOOTHING_S)
+    torques = joint_torques(motion, contacts, robot, model, qvel=qvel, qacc=qacc)
+    limit = dict(zip(robot.joint_names, robot.effort_limit))
+    ratio = np.abs(torques) / np.array([limit[n] for n in motion.joint_names])
+    # Only frames whose smoothing window holds no touch-down or lift-off: a fit across one turns the
+    # impact into a torque no motor would be asked for.
+    checked = away_from_contact_changes(contacts, int(round(ZMP_SMOOTHING_S / motion.dt / 2)))
+    if not checked.any():
+        return {"peak_effort_ratio": None, "frames_checked": 0}
+    ratio = np.where(checked[:, None], ratio, 0.0)
+    frame, joint = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+    peaks = ratio.max(axis=0)
+    over = {motion.joint_names[j]: float(peaks[j]) for j in np.argsort(-peaks) if peaks[j] > 1.0}
+    return {"peak_effort_ratio": float(ratio[frame, joint]),
+            "peak_joint": motion.joint_names[joint],
+            "peak_time_s": float(frame * motion.dt),
+            "frames_over_limit": int((ratio > 1.0).any(axis=1).sum()),
+            "frames_checked": int(checked.sum()),
+            "joints_over_limit": over}

@@ -28,7 +28,7 @@ def _xyz(v) -> str:
 
 
 def mjcf_to_urdf(model: mujoco.MjModel, name: str = "g1") -> str:
-    out = [f'<?xml version="1.0"?>', f'<robot name="{name}">']
+    out = ['<?xml version="1.0"?>', f'<robot name="{name}">']
     for b in range(1, model.nbody):
         body = model.body(b).name
         inertia = model.body_inertia[b]
