@@ -26,7 +26,7 @@ Definitions (all on the final 50 Hz motion unless said):
   torque                    can the motors make the motion? The joint torques of its inverse dynamics
                             (robot/dynamics.py: the base carried by the feet on the ground, velocities and
                             accelerations from the same cubic fits over 0.2 s) against each motor's effort
-                            limit, over every frame except the 3 either side of a touch-down or lift-off:
+                            limit, over the frames whose fit window holds no touch-down or lift-off:
                             the largest |torque| / limit (above 1 the clip asks a motor for more than it
                             has, e.g. a push-off the person made with stronger ankles), at which joint and
                             when, on how many frames some joint is over its limit, and the peak ratio of
@@ -216,7 +216,8 @@ def torque_report(motion: Motion, model: mujoco.MjModel, robot: RobotConfig) -> 
     # impact into a torque no motor would be asked for.
     checked = away_from_contact_changes(contacts, int(round(ZMP_SMOOTHING_S / motion.dt / 2)))
     if not checked.any():
-        return {"peak_effort_ratio": None, "frames_checked": 0}
+        return {"peak_effort_ratio": None, "peak_joint": None, "peak_time_s": None, "frames_over_limit": 0,
+                "frames_checked": 0, "joints_over_limit": {}}
     ratio = np.where(checked[:, None], ratio, 0.0)
     frame, joint = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
     peaks = ratio.max(axis=0)
