@@ -58,6 +58,7 @@ def test_default_params_validate():
         (lambda r: r["tasks"]["far_jump_sample"]["psi"].update(easy=[[0.9, 0.3]]), "psi"),
         (lambda r: r["train"].update(iterations_stage1=-3), "iterations_stage1"),
         (lambda r: r["train"].update(iterations_stage2=0, time_limit_stage2_s=0), "iterations_stage2"),
+        (lambda r: r["train"].update(time_limit_stage2_s=-5), "time_limit_stage2_s"),
         (lambda r: r["env"]["rewards"]["weights"].update(global_body_poss=1.0), "global_body_poss"),
         (lambda r: r["retarget"].update(solver="ikpy"), "solver"),
     ],
