@@ -42,7 +42,7 @@ from scipy.spatial import ConvexHull
 
 from pipeline.motion.feet import detect_foot_contacts
 from pipeline.motion.motion import Motion
-from pipeline.robot.dynamics import joint_torques, smoothed_velocity_and_acceleration
+from pipeline.robot.dynamics import fit_half_window, joint_torques, smoothed_velocity_and_acceleration
 from pipeline.robot.g1 import RobotConfig, joint_limits
 
 SLOW_COM_SPEED = 0.3  # m/s
@@ -57,7 +57,7 @@ GRAVITY = 9.81
 
 def smooth_acceleration(x: np.ndarray, dt: float) -> np.ndarray:
     """Second time derivative of x (T, ...) along axis 0, from local cubic fits over ZMP_SMOOTHING_S."""
-    window = 2 * int(round(ZMP_SMOOTHING_S / dt / 2)) + 1
+    window = 2 * fit_half_window(ZMP_SMOOTHING_S, dt) + 1
     if len(x) < window or window < 5:
         return np.gradient(np.gradient(x, dt, axis=0), dt, axis=0)
     return savgol_filter(x, window, 3, deriv=2, delta=dt, axis=0)
@@ -214,7 +214,7 @@ def torque_report(motion: Motion, model: mujoco.MjModel, robot: RobotConfig) -> 
     ratio = np.abs(torques) / np.array([limit[n] for n in motion.joint_names])
     # Only frames whose smoothing window holds no touch-down or lift-off: a fit across one turns the
     # impact into a torque no motor would be asked for.
-    checked = away_from_contact_changes(contacts, int(round(ZMP_SMOOTHING_S / motion.dt / 2)))
+    checked = away_from_contact_changes(contacts, fit_half_window(ZMP_SMOOTHING_S, motion.dt))
     if not checked.any():
         return {"peak_effort_ratio": None, "peak_joint": None, "peak_time_s": None, "frames_over_limit": 0,
                 "frames_checked": 0, "joints_over_limit": {}}

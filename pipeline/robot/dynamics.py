@@ -59,12 +59,18 @@ def joint_torques(motion: Motion, feet_in_contact: np.ndarray, robot: RobotConfi
     return torques
 
 
+def fit_half_window(window_s: float, dt: float) -> int:
+    """Frames either side of the centre of a local fit spanning about `window_s` (an odd window of
+    2·h + 1 frames): the smoothers below use it, and so do checks that must keep a fit off a contact change."""
+    return int(round(window_s / dt / 2))
+
+
 def smoothed_velocity_and_acceleration(motion: Motion, window_s: float) -> tuple[np.ndarray, np.ndarray]:
     """(T, nv) generalised velocities and accelerations from local cubic fits over `window_s`: a clip
     estimated from video jitters at a rate no PD-tracked robot follows, and raw second differences
     turn that jitter into torques several times the real ones."""
     qvel = motion.qvel()
-    window = 2 * int(round(window_s / motion.dt / 2)) + 1
+    window = 2 * fit_half_window(window_s, motion.dt) + 1
     if motion.num_frames < window or window < 5:
         return qvel, np.gradient(qvel, motion.dt, axis=0)
     return (savgol_filter(qvel, window, 3, axis=0),
