@@ -1,7 +1,8 @@
 """Does stage 1 learn on 2 CPU cores? Goal: >= 90 % success within 20 minutes.
 
-Imports ../shared/data/adamimic_smpl/far_jump.npz, retargets it to the G1, cuts about 1.5 s around
-the jump (from 0.5 s before take-off to after landing), selects keyframes, builds D_edit and trains
+Imports ../shared/data/adamimic_smpl/far_jump.npz (or another shared clip: `--motion`, with its paper
+task's edit, ψ ranges and terrain), retargets it to the G1, cuts about 1.5 s around the jump (from 0.5 s
+before take-off to after landing), selects keyframes, builds D_edit and trains
 stage 1 (variant adamimic_stage1, cpu profile) against the real TrackingEnv until the time budget.
 Prints the training curve, where success is the trainer's (stochastic policy, randomised worlds,
 half the episodes from a reference state): no termination and a mean body error <= 1 m at every
@@ -14,7 +15,7 @@ With `--stage2-minutes M`, stage 2 (variant adamimic: phase and tracking adapter
 policy, episodes from t = 0) then trains for M more minutes and is evaluated on the same episodes; the
 last line stays stage 1's, which is what the goal is about.
 
-    .venv/bin/python benchmarks/learn_cpu.py [--minutes 20] [--segment 1.5] [--envs 192] [--out DIR]
+    .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--stage2-minutes M] [--set env.KEY=VALUE | train.KEY=VALUE ...]
 """
 
@@ -30,11 +31,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CLIP = ROOT.parent / "shared" / "data" / "adamimic_smpl" / "far_jump.npz"
+# The paper's tasks whose input is one of the shared clips; each has a take-off to cut the segment around.
+MOTIONS = ("far_jump", "high_jump", "jump_step_up", "jump_step_down", "tennis_hit")
 
 
 def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None,
-               keyframe_spacing: float | None = None):
+               keyframe_spacing: float | None = None, motion_name: str = "far_jump"):
     from pipeline.human.importers import load_human_motion
     from pipeline.keyframes.config import load_tasks, load_yaml_strict
     from pipeline.keyframes.edit import build_tracking_data
@@ -42,13 +44,13 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
     from pipeline.retarget import RetargetConfig, retarget
 
     tasks = load_tasks(load_yaml_strict(ROOT / "pipeline" / "keyframes" / "paper_tasks.yaml")["tasks"])
-    task = tasks["far_jump"]
+    task = tasks[motion_name]
     if psi_range is not None:
         task = dataclasses.replace(task, psi=dataclasses.replace(task.psi, train=(tuple(psi_range),)))
     if keyframe_spacing is not None:
         spacing = dataclasses.replace(task.keyframes, spacing=keyframe_spacing, min_gap=min(task.keyframes.min_gap, keyframe_spacing / 2))
         task = dataclasses.replace(task, keyframes=spacing)
-    human = load_human_motion(CLIP)
+    human = load_human_motion(task.input_path(ROOT))
     motion, _ = retarget(human, RetargetConfig(), fps_out=50, progress=False)
     full = select_keyframes(motion, task)
     if full.flights:
@@ -113,8 +115,8 @@ def success_by_range(episodes: list, psi_ranges: dict) -> str:
 
 def report(label: str, ev: dict, episodes: list, data) -> None:
     print(f"[learn_cpu] {label}: success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, "
-          f"E_l-bpe {ev['e_l_bpe']:.0f} mm, ψ reached {ev['psi_reached']:.2f} m (farthest successful "
-          f"{ev['psi_reached_max']:.2f} m; clip {data.psi_raw:.2f} m)")
+          f"E_l-bpe {ev['e_l_bpe']:.0f} mm, ψ reached {ev['psi_reached']:.2f} m (largest by a successful "
+          f"episode {ev['psi_reached_max']:.2f} m; clip {data.psi_raw:.2f} m)")
     print(f"[learn_cpu]   by ψ (m): {success_by_psi(episodes)}")
     print(f"[learn_cpu]   by the paper's ranges: {success_by_range(episodes, data.psi_ranges)}")
     print(f"[learn_cpu]   keyframe by keyframe, % reached (mean error mm): {funnel_line(episodes, data)}")
@@ -150,8 +152,10 @@ def main() -> None:
     parser.add_argument("--segment", type=float, default=1.5, help="seconds of the clip to track")
     parser.add_argument("--envs", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--motion", choices=MOTIONS, default="far_jump",
+                        help="which shared clip, with its paper task's edit, ψ ranges and terrain")
     parser.add_argument("--psi", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
-                        help="train on this jump-distance range instead of the paper's far_jump train range")
+                        help="train on this ψ range instead of the paper task's train range")
     parser.add_argument("--keyframe-spacing", type=float, default=None,
                         help="seconds between uniform keyframes (default: the task's, 0.3)")
     parser.add_argument("--stage2-minutes", type=float, default=0.0,
@@ -167,8 +171,9 @@ def main() -> None:
     from pipeline.rl.trainer import train_stage1
 
     t0 = time.time()
-    data, keyframes, (start, stop, total) = build_data(args.segment, psi_range=args.psi, keyframe_spacing=args.keyframe_spacing)
-    print(f"[learn_cpu] far_jump frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
+    data, keyframes, (start, stop, total) = build_data(args.segment, psi_range=args.psi, keyframe_spacing=args.keyframe_spacing,
+                                                       motion_name=args.motion)
+    print(f"[learn_cpu] {args.motion} frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
     # Sized by time: 0 iterations train until the limit, and the curricula follow the clock.

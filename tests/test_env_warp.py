@@ -14,6 +14,7 @@ an ankle by about 2e-3 rad, and the two then settle together. The tolerances bel
 from __future__ import annotations
 
 import functools
+import json
 from pathlib import Path
 
 import numpy as np
@@ -113,3 +114,26 @@ def test_an_ended_world_restarts_the_same_on_both(far_jump, warp_allowed_on_cpu)
     torch.testing.assert_close(warp.backend.qpos[0], cpu.backend.qpos[0], atol=1e-5, rtol=0)
     torch.testing.assert_close(warp.backend.qvel[0], cpu.backend.qvel[0], atol=1e-4, rtol=0)
     _assert_same_models(cpu, warp, np.array([0]))
+
+
+def test_gpu_profile_trains_both_stages_on_the_warp_backend(far_jump, warp_allowed_on_cpu, tmp_path):
+    """The GPU profile's whole training path (Warp worlds, its networks, PPO, checkpoints, stage 2 on the
+    frozen stage 1), shrunk and on CPU: the one run of it that needs no GPU."""
+    from pipeline.rl.checkpoint import load_policy
+    from pipeline.rl.config import TrainConfig
+    from pipeline.rl.trainer import train_stage1, train_stage2
+
+    cfg = TrainConfig.from_dict({"profile": "gpu", "device": "cpu", "iterations_stage1": 2, "iterations_stage2": 1,
+                                 "ppo": {"num_envs": N, "steps_per_iteration": 6, "minibatches": 2}})
+    assert cfg.backend == "warp" and cfg.network.actor_hidden == [512, 256, 128]
+    env_cfg = EnvConfig.from_dict({})
+    stage1 = train_stage1(far_jump, env_cfg, cfg, tmp_path / "s1", tensorboard=False, progress=False)
+    assert stage1["iterations"] == 2 and stage1["env_steps"] == 2 * N * 6
+    history = json.loads((tmp_path / "s1" / "history.json").read_text())
+    assert all(np.isfinite(h["policy_loss"]) and np.isfinite(h["value_loss_sparse"]) for h in history)
+    stage2 = train_stage2(far_jump, env_cfg, cfg, tmp_path / "s2", stage1_dir=tmp_path / "s1" / "policy",
+                          tensorboard=False, progress=False)
+    assert stage2["iterations"] == 1
+    policy, meta = load_policy(tmp_path / "s2" / "policy")
+    assert meta["stage"] == 2 and meta["train_config"]["backend"] == "warp"
+    assert all(torch.isfinite(p).all() for p in policy.parameters())
