@@ -31,9 +31,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-# The paper's tasks whose input is one of the shared clips; each has a take-off to cut the segment around.
-MOTIONS = ("far_jump", "high_jump", "jump_step_up", "jump_step_down", "tennis_hit")
-
 
 def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None,
                keyframe_spacing: float | None = None, motion_name: str = "far_jump"):
@@ -44,6 +41,9 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
     from pipeline.retarget import RetargetConfig, retarget
 
     tasks = load_tasks(load_yaml_strict(ROOT / "pipeline" / "keyframes" / "paper_tasks.yaml")["tasks"])
+    if motion_name not in tasks:
+        raise SystemExit(f"--motion {motion_name!r}: not a paper task (pipeline/keyframes/paper_tasks.yaml: "
+                         f"{', '.join(tasks)})")
     task = tasks[motion_name]
     if psi_range is not None:
         task = dataclasses.replace(task, psi=dataclasses.replace(task.psi, train=(tuple(psi_range),)))
@@ -152,8 +152,9 @@ def main() -> None:
     parser.add_argument("--segment", type=float, default=1.5, help="seconds of the clip to track")
     parser.add_argument("--envs", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None)
-    parser.add_argument("--motion", choices=MOTIONS, default="far_jump",
-                        help="which shared clip, with its paper task's edit, ψ ranges and terrain")
+    parser.add_argument("--motion", default="far_jump",
+                        help="a paper task whose clip is at hand (the shared ones: far_jump, high_jump, jump_step_up, "
+                             "jump_step_down, tennis_hit), with its edit, ψ ranges and terrain")
     parser.add_argument("--psi", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
                         help="train on this ψ range instead of the paper task's train range")
     parser.add_argument("--keyframe-spacing", type=float, default=None,
