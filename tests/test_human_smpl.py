@@ -156,6 +156,32 @@ def test_sample_landing_is_balanced():
     assert np.gradient(com[:, 0], dt)[clip.touchdown_frame] > 1.0
 
 
+def test_sample_push_off_is_balanced():
+    """From the bottom of the crouch to take-off the feet stay put, the zero-moment point of the centre
+    of mass's path stays between the ankles and the balls of the feet, and the body speeds up forwards
+    without a pause into the flight's own speed. (The sample before moved the body by the pose alone:
+    it surged, then braked just before take-off with the point 0.26 m past the G1's toes, which asked
+    its ankles for 2.2 times their torque.)"""
+    from pipeline.human.sample import CROUCH_KEY, KEYFRAMES
+
+    clip = make_sample_clip()
+    pos = load_human_motion(SAMPLE_PATH).joint_pos
+    dt = 1.0 / clip.fps
+    push = slice(int(round(KEYFRAMES[CROUCH_KEY][0] / dt)), clip.takeoff_frame + 1)
+    feet = pos[push][:, [7, 8, 10, 11]]
+    assert np.abs(feet - feet[0]).max() < 1e-3
+    com = smpl.center_of_mass(pos)
+    acc = np.gradient(np.gradient(com, dt, axis=0), dt, axis=0)
+    zmp = com[:, 0] - com[:, 2] * acc[:, 0] / (9.81 + acc[:, 2])
+    inner = slice(push.start + 2, push.stop - 2)  # second differences across the ends mix in the neighbours
+    assert np.all(zmp[inner] > feet[0, :2, 0].max())
+    assert np.all(zmp[inner] < feet[0, 2:, 0].min())
+    speed = np.diff(com[:, 0]) / dt
+    assert np.all(np.diff(speed[push.start : clip.takeoff_frame + 1]) > 0.0)
+    flight_speed = speed[clip.takeoff_frame + 1]
+    assert abs(speed[clip.takeoff_frame] - flight_speed) < 0.1 * flight_speed
+
+
 def test_center_of_mass_of_the_standing_body():
     """The neutral body standing at rest: centre of mass on the mid-line, at 55-58 % of the standing
     height above the soles (the anthropometric figure for adults)."""

@@ -109,6 +109,20 @@ def test_bundled_sample_balances_on_the_g1():
     assert report["balance"]["zmp_frames_checked"] > 0.5 * motion.num_frames
 
 
+def test_bundled_sample_is_within_the_g1_motors():
+    """The retargeted sample's inverse dynamics ask no motor for more torque than it has, and its
+    zero-moment point stays inside the feet wherever it is checked (quality.json's `torque` and
+    `balance`). A policy can then track the reference as it is instead of inventing its own push-off;
+    the samples before asked the ankles for 2.2 times their limit in the push."""
+    from pipeline.human.importers import load_human_motion
+    from pipeline.human.sample import SAMPLE_PATH
+
+    _, report = retarget(load_human_motion(SAMPLE_PATH), RetargetConfig(), progress=False)
+    assert report["torque"]["frames_checked"] > 0.8 * report["frames_out"]
+    assert report["torque"]["peak_effort_ratio"] <= 0.8, report["torque"]
+    assert report["balance"]["zmp_inside_support_min_mm"] >= 0.0, report["balance"]
+
+
 def test_support_margin_sign():
     """Standing in the default pose the centre of mass is inside the feet; the same pose tilted 0.5 rad
     forward about the pelvis swings the feet ~0.3 m back under it, leaving the centre of mass outside."""

@@ -9,8 +9,13 @@ How it is made:
     spine lean, arm swing, elbow bend) keyed at stand, crouch, rise, take-off, tuck, touch-down,
     absorb and recover, interpolated with monotone cubics (no overshoot), turned into SMPL
     local axis-angles of a body whose two sides move alike;
-  * before take-off the feet are pinned (their mean x stays put, the lowest sole point stays on the
-    floor z = 0), so the body moves by the pose alone;
+  * until the bottom of the crouch the feet are pinned (their mean x stays put, the lowest sole point
+    stays on the floor z = 0), so the body moves by the pose alone;
+  * in the push-off the centre of mass is planned (`_planned_push`): it rises to the take-off height
+    and speed and moves forward as an inverted pendulum about one zero-moment point between the ankles
+    and the balls of the feet, chosen so that it leaves the ground at the speed the flight and landing
+    need; the legs are solved so the feet stay flat where they stood. The arms swing up through the
+    take-off and stop in the air, where stopping them asks nothing of the ankles;
   * in the air the whole-body centre of mass (`smpl.center_of_mass`) follows a true projectile,
     x(t) = x0 + vx t, z(t) = z0 + vz t - g t^2 / 2 with g = 9.81 m/s^2;
   * after touch-down the centre of mass is planned so the landing can be done without tipping: its
@@ -36,6 +41,7 @@ SAMPLE_PATH = REPO_ROOT / "data" / "sample" / "far_jump_synthetic.npz"
 FPS = 30.0
 DURATION_S = 2.9
 TAKEOFF_S = 1.2
+TAKEOFF_CROUCH_M = 0.08  # centre of mass at take-off below the keyed take-off pose's
 TOUCHDOWN_S = 49.0 / 30.0  # a frame's time: the touch-down key is where the landing's legs are solved
 JUMP_DISTANCE_M = 1.0
 GRAVITY = 9.81
@@ -52,10 +58,10 @@ PARAMS = ("pelvis_pitch", "spine_lean", "hip_flex", "knee_flex", "ankle_flex", "
 KEYFRAMES: list[tuple[float, dict[str, float]]] = [
     (0.00, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand ...
     (0.30, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # ... still
-    (0.75, dict(pelvis_pitch=0.55, spine_lean=0.25, hip_flex=-1.05, knee_flex=1.65, ankle_flex=-0.75, arm_swing=1.0, elbow_flex=0.2)),  # crouch, arms back
+    (0.85, dict(pelvis_pitch=0.55, spine_lean=0.25, hip_flex=-1.05, knee_flex=1.65, ankle_flex=-0.75, arm_swing=1.0, elbow_flex=0.2)),  # crouch, arms back
     (1.03, dict(pelvis_pitch=0.75, spine_lean=0.25, hip_flex=-0.75, knee_flex=1.25, ankle_flex=-0.50, arm_swing=0.2, elbow_flex=0.2)),  # rise, leaning into the jump
-    (1.26, dict(pelvis_pitch=0.45, spine_lean=0.10, hip_flex=0.20, knee_flex=0.05, ankle_flex=0.55, arm_swing=-1.9, elbow_flex=0.2)),  # take-off: extended, arms up
-    (1.40, dict(pelvis_pitch=0.30, spine_lean=0.15, hip_flex=-1.40, knee_flex=1.50, ankle_flex=0.10, arm_swing=-1.3, elbow_flex=0.4)),  # tuck
+    (TAKEOFF_S, dict(pelvis_pitch=0.45, spine_lean=0.10, hip_flex=0.20, knee_flex=0.05, ankle_flex=0.55, arm_swing=-1.3, elbow_flex=0.2)),  # take-off: extended, arms up
+    (1.40, dict(pelvis_pitch=0.30, spine_lean=0.15, hip_flex=-1.40, knee_flex=1.50, ankle_flex=0.10, arm_swing=-1.9, elbow_flex=0.4)),  # tuck
     # From the touch-down on, the legs are solved (feet pinned, see make_sample_clip): the leg values
     # of these keys only shape the flight's swing into the touch-down.
     (TOUCHDOWN_S, dict(pelvis_pitch=0.35, spine_lean=0.25, hip_flex=-0.60, knee_flex=0.45, ankle_flex=-0.10, arm_swing=-0.6, elbow_flex=0.3)),  # touch-down: legs reach
@@ -63,7 +69,7 @@ KEYFRAMES: list[tuple[float, dict[str, float]]] = [
     (2.60, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # recover
     (2.90, dict(pelvis_pitch=0.00, spine_lean=0.00, hip_flex=0.00, knee_flex=0.00, ankle_flex=0.00, arm_swing=0.0, elbow_flex=0.1)),  # stand
 ]
-TOUCHDOWN_KEY = 6
+CROUCH_KEY, TAKEOFF_KEY, TOUCHDOWN_KEY = 2, 4, 6
 LEG_PARAMS = ("hip_flex", "knee_flex", "ankle_flex")
 SIDES = ("left", "right")
 # The body frame's front (+z) to world +x, its up (+y) to world +z, its left (+x) to world +y.
@@ -80,17 +86,17 @@ class SampleClip:
     touchdown_frame: int
 
 
-def _pose_tracks(times: np.ndarray, touchdown_legs: dict | None = None) -> dict[str, np.ndarray]:
+def _pose_tracks(times: np.ndarray, solved_legs: dict[int, dict] | None = None) -> dict[str, np.ndarray]:
     """The keyed pose parameters at `times`, the legs' per side ("left_hip_flex", ...): the rest
     template is not quite symmetric, so pinning both feet needs slightly different angles.
-    `touchdown_legs` {side: (hip, knee flexion)} replaces the touch-down key's legs (flat feet)."""
+    `solved_legs` {key index: {side: (hip, knee flexion)}} replaces those keys' legs (flat feet)."""
     key_t = np.array([t for t, _ in KEYFRAMES])
     tracks = {p: PchipInterpolator(key_t, [k[p] for _, k in KEYFRAMES])(times) for p in PARAMS if p not in LEG_PARAMS}
     for side in SIDES:
         keys = [dict(k) for _, k in KEYFRAMES]
-        if touchdown_legs is not None:
-            hip, knee = touchdown_legs[side]
-            keys[TOUCHDOWN_KEY].update(hip_flex=hip, knee_flex=knee, ankle_flex=_flat_foot_ankle(hip, knee))
+        for key, legs in (solved_legs or {}).items():
+            hip, knee = legs[side]
+            keys[key].update(hip_flex=hip, knee_flex=knee, ankle_flex=_flat_foot_ankle(hip, knee))
         for p in LEG_PARAMS:
             tracks[f"{side}_{p}"] = PchipInterpolator(key_t, [k[p] for k in keys])(times)
     return tracks
@@ -150,7 +156,7 @@ def _set_legs(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, hip:
 
 
 def _solve_leg(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, trans: np.ndarray,
-               ankle_target: np.ndarray, rest: np.ndarray, iterations: int = 12) -> tuple[np.ndarray, np.ndarray]:
+               ankle_target: np.ndarray, rest: np.ndarray, iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
     """Hip and knee flexion of one leg on `frames` that put its ankle at `ankle_target` (F, 3; x and z
     are matched) for the given root translations: Newton's method with a finite-difference
     Jacobian, all frames at once."""
@@ -170,49 +176,85 @@ def _solve_leg(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, tra
             dq = np.zeros(2)
             dq[j] = 1e-5
             jac[:, :, j] = (ankle(q + dq) - goal - residual) / 1e-5
-        q = q - np.linalg.solve(jac, residual[..., None])[..., 0]
+        # Damped: a full Newton step from a near-straight knee can jump to the other branch of the leg.
+        q = q - np.clip(np.linalg.solve(jac, residual[..., None])[..., 0], -0.2, 0.2)
     miss = np.abs(ankle(q) - goal).max()
     if miss > 1e-4:  # only the authoring constants can cause this
         raise ValueError(f"sample landing: the {side} leg cannot reach its pinned foot (miss {miss:.3f} m)")
     return q[:, 0], q[:, 1]
 
 
+def _pendulum(height, times: np.ndarray, x0: float, v0: float, zmp: float, steps_per_frame: int = 20):
+    """The centre of mass's horizontal path (at `times`) and its speed at times[-1] when its zero-moment
+    point is held at `zmp`: x'' = (g + z'') / z (x - zmp), the inverted pendulum of the planned
+    height z(t) = height(t). Semi-implicit Euler, `steps_per_frame` steps per frame."""
+    dt = (times[1] - times[0]) / steps_per_frame
+    fine = times[0] + dt * np.arange((len(times) - 1) * steps_per_frame + 1)
+    stiffness = (GRAVITY + height(fine, 2)) / height(fine)
+    x, v = x0, v0
+    path = np.empty(len(fine))
+    for i, k in enumerate(stiffness):
+        path[i] = x
+        if i + 1 < len(fine):
+            v += k * (x - zmp) * dt
+            x += v * dt
+    return path[::steps_per_frame], v
+
+
+def _bisect(f, low: float, high: float, iterations: int = 60) -> float:
+    """A root of f, decreasing on [low, high]: f(low) > 0 > f(high)."""
+    for _ in range(iterations):
+        mid = 0.5 * (low + high)
+        if f(mid) > 0.0:
+            low = mid
+        else:
+            high = mid
+    return 0.5 * (low + high)
+
+
 def _balanced_landing(height, times, x_takeoff: float, x_rest: float, flight_time: float):
     """The centre of mass's horizontal path after touch-down (at times[0]) and the flight's speed vx.
 
     The zero-moment point is held at x_rest, where the final standing pose has its centre of mass
-    over the landed feet, so the robot can do it without tipping: x'' = (g + z'') / z (x - x_rest),
-    an inverted pendulum of the landing's own height z(t). Of the touch-down points D behind x_rest (reached by a flight from x_takeoff with
-    vx = (x_rest - D - x_takeoff) / T), too near ones overshoot x_rest and too far ones fall back:
-    the one that comes to rest is found by bisection.
+    over the landed feet, so the robot can do it without tipping. Of the touch-down points D behind
+    x_rest (reached by a flight from x_takeoff with vx = (x_rest - D - x_takeoff) / T), too near ones
+    overshoot x_rest and too far ones fall back: the one that comes to rest is found by bisection.
     """
-    steps_per_frame = 20
-    dt = (times[1] - times[0]) / steps_per_frame
-    fine = times[0] + dt * np.arange((len(times) - 1) * steps_per_frame + 1)
-    stiffness = (GRAVITY + height(fine, 2)) / height(fine)
+    def flight_speed(distance):
+        return (x_rest - distance - x_takeoff) / flight_time
 
-    def integrate(distance):  # x relative to x_rest, semi-implicit Euler
-        x, v = -distance, (x_rest - distance - x_takeoff) / flight_time
-        path = np.empty(len(fine))
-        for i, k in enumerate(stiffness):
-            path[i] = x
-            v += k * x * dt
-            x += v * dt
-        return path
+    def overshoot(distance):
+        return _pendulum(height, times, x_rest - distance, flight_speed(distance), x_rest)[0].max() - x_rest
 
-    near, far = 0.0, x_rest - x_takeoff
-    for _ in range(60):
-        distance = 0.5 * (near + far)
-        if integrate(distance).max() > 0.0:
-            near = distance  # overshot
-        else:
-            far = distance
-    return x_rest + integrate(distance)[::steps_per_frame], (x_rest - distance - x_takeoff) / flight_time
+    distance = _bisect(overshoot, 0.0, x_rest - x_takeoff)
+    return _pendulum(height, times, x_rest - distance, flight_speed(distance), x_rest)[0], flight_speed(distance)
+
+
+def _planned_push(height, times, x_start: float, v_start: float, zmp_range: tuple[float, float], land):
+    """The centre of mass's horizontal path through the push-off (times[0] .. take-off at times[-1]),
+    its take-off speed, and the zero-moment point that gives it.
+
+    The push starts from the crouch's own position and speed, and the zero-moment point is held at one
+    place on the feet, so the ankles need not hold the body up on the toes (the pose-driven push the
+    sample had before asked 2.2 times the G1's ankle torque). The place is the one whose take-off
+    speed is what `land(x_takeoff)` (the flight and landing plan) needs from where the push ends.
+    """
+    def surplus(zmp):  # decreasing: a zero-moment point further forward pushes less
+        path, speed = _pendulum(height, times, x_start, v_start, zmp)
+        return speed - land(path[-1])[1]
+
+    low, high = zmp_range
+    if not surplus(low) > 0.0 > surplus(high):
+        raise ValueError(f"sample push-off: no zero-moment point in {zmp_range} gives the take-off speed the landing needs")
+    zmp = _bisect(surplus, low, high)
+    path, speed = _pendulum(height, times, x_start, v_start, zmp)
+    return path, speed, zmp
 
 
 def make_sample_clip() -> SampleClip:
     frames = int(round(DURATION_S * FPS)) + 1
     times = np.arange(frames) / FPS
+    push_start = int(round(KEYFRAMES[CROUCH_KEY][0] * FPS))  # the push starts at the bottom of the crouch
     takeoff = int(round(TAKEOFF_S * FPS))
     touchdown = int(round(TOUCHDOWN_S * FPS))
     flight_time = (touchdown - takeoff) / FPS
@@ -222,11 +264,16 @@ def make_sample_clip() -> SampleClip:
     pos = _pose_only_fk(tracks, rest)
     trans = np.zeros((frames, 3))
 
-    # Before take-off: the feet stand still and the lowest sole is on the floor; the pose moves the body.
+    # Up to take-off the feet stand still and the lowest sole is on the floor, so the pose moves the body.
+    # Until the push starts that is the clip; from there on it gives the take-off height.
     before = np.arange(takeoff + 1)
     trans[before, 2] = -_sole_height(pos[before], clearance)
     trans[before, 0] = _feet_x(pos[:1])[0] - _feet_x(pos[before])
-    com_takeoff = smpl.center_of_mass(pos[takeoff] + trans[takeoff])
+    posed_com = smpl.center_of_mass(pos[before] + trans[before, None])
+    posed_velocity = np.gradient(posed_com, 1.0 / FPS, axis=0)
+    ankles = {side: pos[0, J[f"{side}_ankle"]] + trans[0] for side in SIDES}
+    ankle_x = np.mean([a[0] for a in ankles.values()])
+    ball_x = pos[0, [J["left_foot"], J["right_foot"]], 0].mean() + trans[0, 0]
 
     # Where the body comes to rest: the final pose standing with its feet JUMP_DISTANCE_M ahead (the
     # feet start at the pose's own x: trans[0] = 0).
@@ -236,44 +283,65 @@ def make_sample_clip() -> SampleClip:
     com_rest = smpl.center_of_mass(stand) - np.array([0.0, 0.0, SOFT_KNEES_M])
     # The landing's height: the centre of mass touches down TOUCHDOWN_DROP_M below standing height,
     # still falling at the flight's speed, sinks to ABSORB_DEPTH_M below it and rises back.
+    com_takeoff_z = posed_com[takeoff, 2] - TAKEOFF_CROUCH_M
     com_touchdown_z = com_rest[2] - TOUCHDOWN_DROP_M
-    vz0 = (com_touchdown_z - com_takeoff[2]) / flight_time + 0.5 * GRAVITY * flight_time
+    vz0 = (com_touchdown_z - com_takeoff_z) / flight_time + 0.5 * GRAVITY * flight_time
     absorb_t, recover_t = KEYFRAMES[-3][0], KEYFRAMES[-2][0]
-    height = CubicHermiteSpline(
+    landing_height = CubicHermiteSpline(
         [times[touchdown], absorb_t, recover_t, times[-1]],
         [com_touchdown_z, com_rest[2] - ABSORB_DEPTH_M, com_rest[2], com_rest[2]],
         [vz0 - GRAVITY * flight_time, 0.0, 0.0, 0.0])
     after = np.arange(touchdown, frames)
-    landing_x, vx = _balanced_landing(height, times[after], com_takeoff[0], com_rest[0], flight_time)
+
+    def land(x_takeoff):
+        return _balanced_landing(landing_height, times[after], x_takeoff, com_rest[0], flight_time)
+
+    # The push: the centre of mass rises from the crouch's height and speed to the take-off's, and moves
+    # forward as the pendulum of its zero-moment point (somewhere between the heels and the toes).
+    push = np.arange(push_start, takeoff + 1)
+    push_height = CubicHermiteSpline([times[push_start], times[takeoff]], [posed_com[push_start, 2], com_takeoff_z],
+                                     [posed_velocity[push_start, 2], vz0])
+    push_x, vx, zmp = _planned_push(push_height, times[push], posed_com[push_start, 0], posed_velocity[push_start, 0],
+                                    (ankle_x - 0.5 * (ball_x - ankle_x), ball_x), land)
+    landing_x, _ = land(push_x[-1])
 
     com = np.zeros((frames, 3))
-    com[:, 1] = com_takeoff[1]  # straight ahead
+    com[:, 1] = posed_com[0, 1]  # straight ahead
+    com[push, 0] = push_x
+    com[push, 2] = push_height(times[push])
     tau = (np.arange(takeoff, touchdown + 1) - takeoff) / FPS
-    com[takeoff : touchdown + 1, 0] = com_takeoff[0] + vx * tau
-    com[takeoff : touchdown + 1, 2] = com_takeoff[2] + vz0 * tau - 0.5 * GRAVITY * tau**2
+    com[takeoff : touchdown + 1, 0] = push_x[-1] + vx * tau
+    com[takeoff : touchdown + 1, 2] = com_takeoff_z + vz0 * tau - 0.5 * GRAVITY * tau**2
     com[after, 0] = landing_x
-    com[after, 2] = height(times[after])
+    com[after, 2] = landing_height(times[after])
 
-    # The legs of the landing reach the pinned feet (each ankle where the standing pose has it) from
-    # wherever the planned body is; the touch-down key takes those legs so the flight's leg swing ends
-    # in them. The body's translation depends on the legs (a third of the mass), so alternate a few times.
-    ankle_targets = {side: np.repeat(stand[None, J[f"{side}_ankle"]], len(after), axis=0) for side in SIDES}
+    # The legs of the push and of the landing reach the pinned feet (each ankle where it stood before,
+    # and where the standing pose has it after) from wherever the planned body is; the take-off and
+    # touch-down keys take those legs so the flight's leg swing starts and ends in them. The body's
+    # translation depends on the legs (a third of the mass), so alternate a few times.
+    grounded = {"push": (push, ankles), "landed": (after, {side: stand[J[f"{side}_ankle"]] for side in SIDES})}
     airborne = np.arange(takeoff + 1, touchdown)
 
     def place_body(legs):
-        """The pose with these landing legs, and the root translations that put its centre of mass on `com`."""
-        tracks = _pose_tracks(times, {side: (h[0], k[0]) for side, (h, k) in legs.items()} if legs else None)
-        for side, (hip, knee) in legs.items():
-            _set_legs(tracks, after, side, hip, knee)
+        """The pose with these pinned legs, and the root translations that put its centre of mass on `com`."""
+        keyed = {TAKEOFF_KEY: {side: (h[-1], k[-1]) for side, (h, k) in legs["push"].items()},
+                 TOUCHDOWN_KEY: {side: (h[0], k[0]) for side, (h, k) in legs["landed"].items()}} if legs else None
+        tracks = _pose_tracks(times, keyed)
+        for phase, (phase_frames, _) in grounded.items():
+            for side, (hip, knee) in (legs or {}).get(phase, {}).items():
+                _set_legs(tracks, phase_frames, side, hip, knee)
         pos = _pose_only_fk(tracks, rest)
-        for frames in (airborne, after):
-            trans[frames] = com[frames] - smpl.center_of_mass(pos[frames])
+        for phase_frames in (push, airborne, after):
+            trans[phase_frames] = com[phase_frames] - smpl.center_of_mass(pos[phase_frames])
         return tracks
 
     legs = {}
     for _ in range(5):
         tracks = place_body(legs)
-        legs = {side: _solve_leg(tracks, after, side, trans[after], ankle_targets[side], rest) for side in SIDES}
+        legs = {phase: {side: _solve_leg(tracks, phase_frames, side, trans[phase_frames],
+                                         np.repeat(targets[side][None], len(phase_frames), axis=0), rest)
+                        for side in SIDES}
+                for phase, (phase_frames, targets) in grounded.items()}
     tracks = place_body(legs)
     return SampleClip(_rotvecs(tracks).reshape(frames, 66), trans, FPS, takeoff, touchdown)
 
