@@ -182,6 +182,47 @@ def test_sample_push_off_is_balanced():
     assert abs(speed[clip.takeoff_frame] - flight_speed) < 0.1 * flight_speed
 
 
+def test_sample_flight_keeps_its_angular_momentum():
+    """In the air nothing outside the body can change its angular momentum about its centre of mass, so
+    the sample's flight leans the whole body to keep it: constant from take-off to touch-down, while the
+    arms and legs swing. (The keyed flight before swung the G1's pitch momentum between -13 and +3
+    kg m^2/s.)"""
+    clip = make_sample_clip()
+    pos = load_human_motion(SAMPLE_PATH).joint_pos
+    momentum = smpl.angular_momentum(pos, 1.0 / clip.fps)[clip.takeoff_frame : clip.touchdown_frame]
+    assert np.ptp(momentum[:, 1]) < 0.02 * np.abs(momentum[:, 1]).max()
+    before = smpl.angular_momentum(pos[clip.takeoff_frame - 8 : clip.takeoff_frame + 1], 1.0 / clip.fps)[:, 1]
+    assert np.ptp(before) > 0.1  # the check can fail: on the ground the momentum does change
+
+
+def test_angular_momentum_of_a_spinning_body():
+    """A body that only translates has none; one spinning rigidly about a horizontal axis through its
+    centre of mass has its pitch inertia times the spin, where each two-joint segment is a uniform rod:
+    the same as summing the rods sampled finely along their length."""
+    rest = smpl.NEUTRAL_REST_JOINTS
+    dt, frames = 0.01, 3
+    moving = rest[None] + np.array([0.3, -0.2, 0.5]) * dt * np.arange(frames)[:, None, None]
+    np.testing.assert_allclose(smpl.angular_momentum(moving, dt), 0.0, atol=1e-12)
+
+    spin = 2.0  # rad/s about the rest pose's z (front-to-back, horizontal: the rest pose is y-up)
+    com = smpl.center_of_mass(rest)
+    angle = spin * dt * (np.arange(frames) - 1)
+    c, s = np.cos(angle), np.sin(angle)
+    rotation = np.zeros((frames, 3, 3))
+    rotation[:, 0, 0], rotation[:, 0, 1], rotation[:, 1, 0], rotation[:, 1, 1], rotation[:, 2, 2] = c, -s, s, c, 1.0
+    spinning = com + np.einsum("fij,nj->fni", rotation, rest - com)
+    momentum = smpl.angular_momentum(spinning, dt)
+
+    index = {name: i for i, name in enumerate(smpl.SMPL_JOINT_NAMES)}
+    inertia, total = 0.0, sum(m for m, _ in smpl.SEGMENT_MASSES)
+    for mass, joints in smpl.SEGMENT_MASSES:
+        ends = rest[[index[j] for j in joints]]
+        along = np.linspace(0.0, 1.0, 2001)[:, None]
+        points = ends.mean(axis=0)[None] if len(joints) != 2 else ends[0] + along * (ends[1] - ends[0])
+        inertia += mass / total * np.mean(np.sum((points[:, :2] - com[:2]) ** 2, axis=1))
+    assert momentum[:, 2] == pytest.approx(inertia * spin, rel=1e-3)
+
+
 def test_center_of_mass_of_the_standing_body():
     """The neutral body standing at rest: centre of mass on the mid-line, at 55-58 % of the standing
     height above the soles (the anthropometric figure for adults)."""

@@ -17,7 +17,9 @@ How it is made:
     need; the legs are solved so the feet stay flat where they stood. The arms swing up through the
     take-off and stop in the air, where stopping them asks nothing of the ankles;
   * in the air the whole-body centre of mass (`smpl.center_of_mass`) follows a true projectile,
-    x(t) = x0 + vx t, z(t) = z0 + vz t - g t^2 / 2 with g = 9.81 m/s^2;
+    x(t) = x0 + vx t, z(t) = z0 + vz t - g t^2 / 2 with g = 9.81 m/s^2, and the whole body leans so
+    that its angular momentum about that centre stays what it was at take-off while the arms and legs
+    swing (`_spin_free_flight`);
   * after touch-down the centre of mass is planned so the landing can be done without tipping: its
     zero-moment point stays over the landed feet (`_balanced_landing`), which fixes how far behind
     the feet it touches down for the flight's speed; the legs are then solved so both feet stay
@@ -245,10 +247,49 @@ def _planned_push(height, times, x_start: float, v_start: float, zmp_range: tupl
 
     low, high = zmp_range
     if not surplus(low) > 0.0 > surplus(high):
-        raise ValueError(f"sample push-off: no zero-moment point in {zmp_range} gives the take-off speed the landing needs")
+        raise ValueError(f"sample push-off: no zero-moment point in {zmp_range} gives the take-off speed "
+                         "the landing needs")
     zmp = _bisect(surplus, low, high)
     path, speed = _pendulum(height, times, x_start, v_start, zmp)
     return path, speed, zmp
+
+
+def _pitch_whole_body(tracks: dict[str, np.ndarray], frames, angle) -> None:
+    """Lean the whole body forward by `angle` on `frames`, limbs and all (hips and arms are keyed
+    against the world's vertical, so they turn with the pelvis by the same angle)."""
+    for name in ("pelvis_pitch", "arm_swing", *(f"{side}_hip_flex" for side in SIDES)):
+        tracks[name][frames] += angle
+
+
+def _spin_free_flight(tracks: dict[str, np.ndarray], flight: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """The whole-body lean (rad, per frame of `flight`, take-off to touch-down) that keeps the body's
+    angular momentum about its centre of mass constant in the air, as nothing outside it can change it,
+    and is 0 at both ends, so the take-off and touch-down poses stay as planned. Without it the keyed
+    swing of arms and legs would turn a flight no body can make: on the G1 the reference's pitch
+    momentum swung between -13 and +3 kg m^2/s in the air (0.4 s)."""
+    dt = 1.0 / FPS
+
+    def posed(frame, angle):
+        one = {name: track[[frame]].copy() for name, track in tracks.items()}
+        _pitch_whole_body(one, slice(None), angle)
+        return _pose_only_fk(one, rest)[0]
+
+    def momentum(before, after):  # pitch momentum (about world y) per unit mass between two poses
+        return smpl.angular_momentum(np.stack([before, after]), dt)[0, 1]
+
+    def lean(momentum_in_air):
+        angles, previous = [0.0], posed(flight[0], 0.0)
+        for frame in flight[1:]:
+            # the momentum is affine in the next frame's lean (one secant step is exact up to rounding)
+            low, high = angles[-1], angles[-1] + 0.1
+            m_low, m_high = momentum(previous, posed(frame, low)), momentum(previous, posed(frame, high))
+            angles.append(low + (momentum_in_air - m_low) * (high - low) / (m_high - m_low))
+            previous = posed(frame, angles[-1])
+        return np.array(angles)
+
+    # The lean at touch-down is affine in the momentum too: two tries and a third to land at 0.
+    end_a, end_b = lean(0.0)[-1], lean(0.1)[-1]
+    return lean(0.0 - end_a * 0.1 / (end_b - end_a))
 
 
 def make_sample_clip() -> SampleClip:
@@ -343,6 +384,10 @@ def make_sample_clip() -> SampleClip:
                         for side in SIDES}
                 for phase, (phase_frames, targets) in grounded.items()}
     tracks = place_body(legs)
+    flight = np.arange(takeoff, touchdown + 1)
+    _pitch_whole_body(tracks, flight, _spin_free_flight(tracks, flight, rest))
+    pos = _pose_only_fk(tracks, rest)
+    trans[airborne] = com[airborne] - smpl.center_of_mass(pos[airborne])
     return SampleClip(_rotvecs(tracks).reshape(frames, 66), trans, FPS, takeoff, touchdown)
 
 

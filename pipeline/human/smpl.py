@@ -219,7 +219,33 @@ def center_of_mass(joint_pos: np.ndarray) -> np.ndarray:
     return total / sum(mass for mass, _ in SEGMENT_MASSES)
 
 
+def angular_momentum(joint_pos: np.ndarray, dt: float) -> np.ndarray:
+    """Whole-body angular momentum about the centre of mass, per unit body mass (m^2/s), between
+    consecutive frames of joint positions (T, 22, 3): (T - 1, 3). The `SEGMENT_MASSES` segments of two
+    joints are thin rods (their own spin counts: a rod is two half masses at ±1/sqrt(12) of its length
+    from its middle), the others points."""
+    index = {name: i for i, name in enumerate(SMPL_JOINT_NAMES)}
+    points, masses = [], []
+    for mass, joints in SEGMENT_MASSES:
+        ends = joint_pos[..., [index[j] for j in joints], :]
+        middle = ends.mean(axis=-2)
+        if len(joints) == 2:
+            half = (ends[..., 1, :] - ends[..., 0, :]) / (2.0 * np.sqrt(3.0))
+            points += [middle - half, middle + half]
+            masses += [mass / 2, mass / 2]
+        else:
+            points.append(middle)
+            masses.append(mass)
+    points, masses = np.stack(points, axis=-2), np.array(masses) / sum(masses)
+    com = (masses[:, None] * points).sum(axis=-2, keepdims=True)
+    relative = points - com
+    mid = 0.5 * (relative[1:] + relative[:-1])
+    velocity = np.diff(relative, axis=0) / dt
+    return (masses[:, None] * np.cross(mid, velocity)).sum(axis=-2)
+
+
 __all__ = [
     "NEUTRAL_REST_JOINTS", "NEUTRAL_HEIGHT", "SEGMENT_MASSES", "SMPL_JOINT_NAMES", "SMPL_PARENTS", "ShapeModel",
-    "center_of_mass", "forward_kinematics", "rest_joints", "shape_model", "sole_clearance", "standing_height",
+    "angular_momentum", "center_of_mass", "forward_kinematics", "rest_joints", "shape_model", "sole_clearance",
+    "standing_height",
 ]
