@@ -43,7 +43,9 @@ SAMPLE_PATH = REPO_ROOT / "data" / "sample" / "far_jump_synthetic.npz"
 FPS = 30.0
 DURATION_S = 2.9
 TAKEOFF_S = 1.2
-TAKEOFF_CROUCH_M = 0.08  # centre of mass at take-off below the keyed take-off pose's
+# The take-off's centre of mass this far below the keyed take-off pose's, which stands on its toes: the planned
+# push keeps the feet flat, and the legs must still reach them.
+TAKEOFF_CROUCH_M = 0.08
 TOUCHDOWN_S = 49.0 / 30.0  # a frame's time: the touch-down key is where the landing's legs are solved
 JUMP_DISTANCE_M = 1.0
 GRAVITY = 9.81
@@ -182,7 +184,7 @@ def _solve_leg(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, tra
         q = q - np.clip(np.linalg.solve(jac, residual[..., None])[..., 0], -0.2, 0.2)
     miss = np.abs(ankle(q) - goal).max()
     if miss > 1e-4:  # only the authoring constants can cause this
-        raise ValueError(f"sample landing: the {side} leg cannot reach its pinned foot (miss {miss:.3f} m)")
+        raise ValueError(f"sample: the {side} leg cannot reach its pinned foot (miss {miss:.3f} m)")
     return q[:, 0], q[:, 1]
 
 
@@ -233,8 +235,8 @@ def _balanced_landing(height, times, x_takeoff: float, x_rest: float, flight_tim
 
 
 def _planned_push(height, times, x_start: float, v_start: float, zmp_range: tuple[float, float], land):
-    """The centre of mass's horizontal path through the push-off (times[0] .. take-off at times[-1]),
-    its take-off speed, and the zero-moment point that gives it.
+    """The centre of mass's horizontal path through the push-off (times[0] .. take-off at times[-1])
+    and its take-off speed.
 
     The push starts from the crouch's own position and speed, and the zero-moment point is held at one
     place on the feet, so the ankles need not hold the body up on the toes (the pose-driven push the
@@ -249,9 +251,7 @@ def _planned_push(height, times, x_start: float, v_start: float, zmp_range: tupl
     if not surplus(low) > 0.0 > surplus(high):
         raise ValueError(f"sample push-off: no zero-moment point in {zmp_range} gives the take-off speed "
                          "the landing needs")
-    zmp = _bisect(surplus, low, high)
-    path, speed = _pendulum(height, times, x_start, v_start, zmp)
-    return path, speed, zmp
+    return _pendulum(height, times, x_start, v_start, _bisect(surplus, low, high))
 
 
 def _pitch_whole_body(tracks: dict[str, np.ndarray], frames, angle) -> None:
@@ -289,7 +289,7 @@ def _spin_free_flight(tracks: dict[str, np.ndarray], flight: np.ndarray, rest: n
 
     # The lean at touch-down is affine in the momentum too: two tries and a third to land at 0.
     end_a, end_b = lean(0.0)[-1], lean(0.1)[-1]
-    return lean(0.0 - end_a * 0.1 / (end_b - end_a))
+    return lean(-end_a * 0.1 / (end_b - end_a))
 
 
 def make_sample_clip() -> SampleClip:
@@ -338,12 +338,12 @@ def make_sample_clip() -> SampleClip:
         return _balanced_landing(landing_height, times[after], x_takeoff, com_rest[0], flight_time)
 
     # The push: the centre of mass rises from the crouch's height and speed to the take-off's, and moves
-    # forward as the pendulum of its zero-moment point (somewhere between the heels and the toes).
+    # forward as the pendulum of its zero-moment point (between a little behind the ankles and the balls of the feet).
     push = np.arange(push_start, takeoff + 1)
     push_height = CubicHermiteSpline([times[push_start], times[takeoff]], [posed_com[push_start, 2], com_takeoff_z],
                                      [posed_velocity[push_start, 2], vz0])
-    push_x, vx, zmp = _planned_push(push_height, times[push], posed_com[push_start, 0], posed_velocity[push_start, 0],
-                                    (ankle_x - 0.5 * (ball_x - ankle_x), ball_x), land)
+    push_x, vx = _planned_push(push_height, times[push], posed_com[push_start, 0], posed_velocity[push_start, 0],
+                               (ankle_x - 0.5 * (ball_x - ankle_x), ball_x), land)
     landing_x, _ = land(push_x[-1])
 
     com = np.zeros((frames, 3))
