@@ -115,8 +115,22 @@ def test_bundled_sample_is_what_the_script_writes(tmp_path):
         assert "SYNTHETIC" in str(b["note"])
 
 
-def test_sample_far_jump_physics():
-    clip = make_sample_clip()
+@pytest.fixture(scope="module")
+def sample_clip():
+    """The sample as `make_sample_clip` plans it (a few seconds to solve: made once for these tests)."""
+    return make_sample_clip()
+
+
+def _com_and_zmp_x(pos: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """The centre of mass (T, 3) of joint positions and the x of its path's zero-moment point,
+    x - z x'' / (g + z'') (T,)."""
+    com = smpl.center_of_mass(pos)
+    acc = np.gradient(np.gradient(com, dt, axis=0), dt, axis=0)
+    return com, com[:, 0] - com[:, 2] * acc[:, 0] / (9.81 + acc[:, 2])
+
+
+def test_sample_far_jump_physics(sample_clip):
+    clip = sample_clip
     m = load_human_motion(SAMPLE_PATH)
     assert 2.0 <= m.duration <= 3.0 and m.fps == 30.0
     pos = m.joint_pos
@@ -136,27 +150,25 @@ def test_sample_far_jump_physics():
     np.testing.assert_allclose(acc[:, :2], 0.0, atol=0.05)
 
 
-def test_sample_landing_is_balanced():
+def test_sample_landing_is_balanced(sample_clip):
     """From touch-down on, the feet stay put and the zero-moment point of the centre of mass's path
     (x - z x'' / (g + z'')) stays between the ankles and the balls of the feet (SMPL's foot joints),
     well inside the soles: the landing brakes the flight's speed without tipping. (The first samples
     stopped the body at touch-down and restarted it, with the point 0.4 m outside the feet.)"""
-    clip = make_sample_clip()
+    clip = sample_clip
     pos = load_human_motion(SAMPLE_PATH).joint_pos
     landed = slice(clip.touchdown_frame, None)
     feet = pos[landed][:, [7, 8, 10, 11]]
     assert np.abs(feet - feet[0]).max() < 1e-3
     dt = 1.0 / clip.fps
-    com = smpl.center_of_mass(pos)
-    acc = np.gradient(np.gradient(com, dt, axis=0), dt, axis=0)
-    zmp = com[:, 0] - com[:, 2] * acc[:, 0] / (9.81 + acc[:, 2])
+    com, zmp = _com_and_zmp_x(pos, dt)
     assert np.all(zmp[landed] > feet[:, :2, 0].max(axis=1))
     assert np.all(zmp[landed] < feet[:, 2:, 0].min(axis=1))
     # ... and the flight arrives fast: touch-down velocity is the flight's, not zero
     assert np.gradient(com[:, 0], dt)[clip.touchdown_frame] > 1.0
 
 
-def test_sample_push_off_is_balanced():
+def test_sample_push_off_is_balanced(sample_clip):
     """From the bottom of the crouch to take-off the feet stay put, the zero-moment point of the centre
     of mass's path stays between the ankles and the balls of the feet, and the body speeds up forwards
     without a pause into the flight's own speed. (The sample before moved the body by the pose alone:
@@ -164,15 +176,13 @@ def test_sample_push_off_is_balanced():
     its ankles for 2.2 times their torque.)"""
     from pipeline.human.sample import CROUCH_KEY, KEYFRAMES
 
-    clip = make_sample_clip()
+    clip = sample_clip
     pos = load_human_motion(SAMPLE_PATH).joint_pos
     dt = 1.0 / clip.fps
     push = slice(int(round(KEYFRAMES[CROUCH_KEY][0] / dt)), clip.takeoff_frame + 1)
     feet = pos[push][:, [7, 8, 10, 11]]
     assert np.abs(feet - feet[0]).max() < 1e-3
-    com = smpl.center_of_mass(pos)
-    acc = np.gradient(np.gradient(com, dt, axis=0), dt, axis=0)
-    zmp = com[:, 0] - com[:, 2] * acc[:, 0] / (9.81 + acc[:, 2])
+    com, zmp = _com_and_zmp_x(pos, dt)
     inner = slice(push.start + 2, push.stop - 2)  # second differences across the ends mix in the neighbours
     assert np.all(zmp[inner] > feet[0, :2, 0].max())
     assert np.all(zmp[inner] < feet[0, 2:, 0].min())
@@ -182,12 +192,12 @@ def test_sample_push_off_is_balanced():
     assert abs(speed[clip.takeoff_frame] - flight_speed) < 0.1 * flight_speed
 
 
-def test_sample_flight_keeps_its_angular_momentum():
+def test_sample_flight_keeps_its_angular_momentum(sample_clip):
     """In the air nothing outside the body can change its angular momentum about its centre of mass, so
     the sample's flight leans the whole body to keep it: constant from take-off to touch-down, while the
     arms and legs swing. (The keyed flight before swung the G1's pitch momentum between -13 and +3
     kg m^2/s.)"""
-    clip = make_sample_clip()
+    clip = sample_clip
     pos = load_human_motion(SAMPLE_PATH).joint_pos
     momentum = smpl.angular_momentum(pos, 1.0 / clip.fps)[clip.takeoff_frame : clip.touchdown_frame]
     assert np.ptp(momentum[:, 1]) < 0.02 * np.abs(momentum[:, 1]).max()

@@ -82,19 +82,27 @@ def test_far_jump_lands_on_the_floor(far_jump):
         assert z[-1] == pytest.approx(ankle_h, abs=0.01)
 
 
-def test_bundled_sample_balances_on_the_g1():
+@pytest.fixture(scope="module")
+def retargeted_sample():
+    """The bundled sample retargeted with the default config: (motion, quality report)."""
+    from pipeline.human.importers import load_human_motion
+    from pipeline.human.sample import SAMPLE_PATH
+
+    return retarget(load_human_motion(SAMPLE_PATH), RetargetConfig(), progress=False)
+
+
+def test_bundled_sample_balances_on_the_g1(retargeted_sample):
     """The retargeted sample on the G1. Before take-off, wherever it moves slowly, the robot's centre
     of mass is at least 4 cm inside the soles' outline (3 cm past the ends of the sole capsules'
     centre-lines, which are 1 cm thick), so tracking it does not start by falling over; the first
     synthetic sample crouched with it 1.7 cm inside, at the heels. After touch-down (the impact's 3
     frames aside) the zero-moment point of its path stays at least 25 mm inside the soles (42 mm), so
     the landing brakes the flight without tipping; the samples before landed with it 0.24 m outside."""
-    from pipeline.human.importers import load_human_motion
-    from pipeline.human.sample import SAMPLE_PATH, make_sample_clip
+    from pipeline.human.sample import make_sample_clip
     from pipeline.motion.motion import RobotKinematics
     from pipeline.retarget.quality import SLOW_COM_SPEED, ZMP_SETTLE_FRAMES, GeomHeights
 
-    motion, report = retarget(load_human_motion(SAMPLE_PATH), RetargetConfig(), progress=False)
+    motion, report = retargeted_sample
     clip = make_sample_clip()
     kin = RobotKinematics()
     feet = tuple(kin.model.body(f"{side}_ankle_roll_link").id for side in ("left", "right"))
@@ -109,15 +117,12 @@ def test_bundled_sample_balances_on_the_g1():
     assert report["balance"]["zmp_frames_checked"] > 0.5 * motion.num_frames
 
 
-def test_bundled_sample_is_within_the_g1_motors():
+def test_bundled_sample_is_within_the_g1_motors(retargeted_sample):
     """The retargeted sample's inverse dynamics ask no motor for more torque than it has, and its
     zero-moment point stays inside the feet wherever it is checked (quality.json's `torque` and
     `balance`). A policy can then track the reference as it is instead of inventing its own push-off;
     the samples before asked the ankles for 2.2 times their limit in the push."""
-    from pipeline.human.importers import load_human_motion
-    from pipeline.human.sample import SAMPLE_PATH
-
-    _, report = retarget(load_human_motion(SAMPLE_PATH), RetargetConfig(), progress=False)
+    _, report = retargeted_sample
     assert report["torque"]["frames_checked"] > 0.8 * report["frames_out"]
     assert report["torque"]["peak_effort_ratio"] <= 0.8, report["torque"]
     assert report["balance"]["zmp_inside_support_min_mm"] >= 0.0, report["balance"]
