@@ -10,7 +10,7 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.human import smpl
 from pipeline.human.frames import detect_up_axis, up_rotation
 from pipeline.human.importers import load_human_motion
-from pipeline.human.sample import JUMP_DISTANCE_M, SAMPLE_PATH, make_sample_clip, write_sample
+from pipeline.human.sample import JUMP_DISTANCE_M, SAMPLE_PATH, write_sample
 
 J = {name: i for i, name in enumerate(smpl.SMPL_JOINT_NAMES)}
 
@@ -113,12 +113,6 @@ def test_bundled_sample_is_what_the_script_writes(tmp_path):
         for key in a.files:
             assert np.array_equal(a[key], b[key]), key
         assert "SYNTHETIC" in str(b["note"])
-
-
-@pytest.fixture(scope="module")
-def sample_clip():
-    """The sample as `make_sample_clip` plans it (a few seconds to solve: made once for these tests)."""
-    return make_sample_clip()
 
 
 def _com_and_zmp_x(pos: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:

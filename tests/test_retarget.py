@@ -91,19 +91,18 @@ def retargeted_sample():
     return retarget(load_human_motion(SAMPLE_PATH), RetargetConfig(), progress=False)
 
 
-def test_bundled_sample_balances_on_the_g1(retargeted_sample):
+def test_bundled_sample_balances_on_the_g1(retargeted_sample, sample_clip):
     """The retargeted sample on the G1. Before take-off, wherever it moves slowly, the robot's centre
     of mass is at least 4 cm inside the soles' outline (3 cm past the ends of the sole capsules'
     centre-lines, which are 1 cm thick), so tracking it does not start by falling over; the first
     synthetic sample crouched with it 1.7 cm inside, at the heels. After touch-down (the impact's 3
     frames aside) the zero-moment point of its path stays at least 25 mm inside the soles (42 mm), so
     the landing brakes the flight without tipping; the samples before landed with it 0.24 m outside."""
-    from pipeline.human.sample import make_sample_clip
     from pipeline.motion.motion import RobotKinematics
     from pipeline.retarget.quality import SLOW_COM_SPEED, ZMP_SETTLE_FRAMES, GeomHeights
 
     motion, report = retargeted_sample
-    clip = make_sample_clip()
+    clip = sample_clip
     kin = RobotKinematics()
     feet = tuple(kin.model.body(f"{side}_ankle_roll_link").id for side in ("left", "right"))
     margin = GeomHeights(kin.model, kin.qpos_index, feet).support_margin(motion)
