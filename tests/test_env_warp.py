@@ -116,14 +116,18 @@ def test_an_ended_world_restarts_the_same_on_both(far_jump, warp_allowed_on_cpu)
     _assert_same_models(cpu, warp, np.array([0]))
 
 
-def test_gpu_profile_trains_both_stages_on_the_warp_backend(far_jump, warp_allowed_on_cpu, tmp_path):
+needs_gpu = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")]
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=needs_gpu)])
+def test_gpu_profile_trains_both_stages_on_the_warp_backend(far_jump, warp_allowed_on_cpu, tmp_path, device):
     """The GPU profile's whole training path (Warp worlds, its networks, PPO, checkpoints, stage 2 on the
-    frozen stage 1), shrunk and on CPU: the one run of it that needs no GPU."""
+    frozen stage 1), shrunk: on CPU, the one run of it that needs no GPU; on a GPU, as trained there."""
     from pipeline.rl.checkpoint import load_policy
     from pipeline.rl.config import TrainConfig
     from pipeline.rl.trainer import train_stage1, train_stage2
 
-    cfg = TrainConfig.from_dict({"profile": "gpu", "device": "cpu", "iterations_stage1": 2, "iterations_stage2": 1,
+    cfg = TrainConfig.from_dict({"profile": "gpu", "device": device, "iterations_stage1": 2, "iterations_stage2": 1,
                                  "ppo": {"num_envs": N, "steps_per_iteration": 6, "minibatches": 2}})
     assert cfg.backend == "warp" and cfg.network.actor_hidden == [512, 256, 128]
     env_cfg = EnvConfig.from_dict({})
@@ -137,3 +141,31 @@ def test_gpu_profile_trains_both_stages_on_the_warp_backend(far_jump, warp_allow
     policy, meta = load_policy(tmp_path / "s2" / "policy")
     assert meta["stage"] == 2 and meta["train_config"]["backend"] == "warp"
     assert all(torch.isfinite(p).all() for p in policy.parameters())
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_env_on_the_gpu_moves_like_the_cpu_backend():
+    """The gpu profile's training setting: env tensors and Warp worlds on CUDA. The two devices' RNG
+    streams differ, so nothing is drawn: one ψ sample, no randomisation, no reference-state starts, no
+    odometry noise. Both envs then start alike, on the same gap, and must stay together."""
+    tasks = load_tasks(load_yaml_strict(Path(__file__).resolve().parents[1] / "pipeline/keyframes/paper_tasks.yaml")["tasks"])
+    motion = synthetic_jump_motion([Flight(1.0, 0.4, 1.1)], duration=2.0)
+    data = build_tracking_data(motion, tasks["far_jump"], select_keyframes(motion, tasks["far_jump"]), "edit", 1)
+    cfg = EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0, "sampling": {"mode": "uniform"},
+                               "observations": {"odometry_noise_std": 0.0}})
+    gpu = TrackingEnv(cfg, data, num_envs=N, backend="warp", device="cuda")
+    cpu = TrackingEnv(cfg, data, num_envs=N, backend="cpu", device="cpu")
+    obs_gpu, obs_cpu = gpu.reset(), cpu.reset()
+    assert gpu.backend.qpos.device.type == "cuda" and obs_gpu["actor"].device.type == "cuda"
+    torch.testing.assert_close(obs_gpu["actor"].cpu(), obs_cpu["actor"], atol=1e-4, rtol=0)
+    torch.manual_seed(2)
+    actions = [0.1 * torch.randn(N, cpu.action_dim) for _ in range(STEPS)]
+    for a in actions:
+        o_g, _, term_g, trunc_g, _ = gpu.step(a.cuda())
+        o_c, _, term_c, trunc_c, _ = cpu.step(a)
+    torch.cuda.synchronize()
+    assert torch.isfinite(o_g["actor"]).all()
+    assert torch.equal(term_g.cpu(), term_c) and torch.equal(trunc_g.cpu(), trunc_c)
+    root_gap = (gpu.backend.qpos[:, :3].cpu() - cpu.backend.qpos[:, :3]).abs().max().item()
+    assert root_gap < ROOT_TOL, root_gap

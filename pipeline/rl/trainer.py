@@ -114,6 +114,11 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.stage, self.meta, self.log = stage, meta, log
         self.device = torch.device(cfg.device if cfg.device != "cuda" or torch.cuda.is_available() else "cpu")
+        policy.to(self.device)
+        critic.to(self.device)
+        if amp is not None:
+            amp.to(self.device)
+            amp_reference = amp_reference.to(self.device)
         self.ppo = PPO(policy, critic, cfg.ppo, l2c2=l2c2)
         self.amp, self.amp_reference = amp, amp_reference
         self.use_phase_offset = use_phase_offset
