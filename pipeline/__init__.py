@@ -1,9 +1,22 @@
 """AdaMimic pipeline: human motion in, deployable Unitree G1 policy out."""
 
+import ctypes.util
 import os
 from pathlib import Path
 
+
+def _headless_gl() -> str:
+    """MuJoCo's offscreen GL: EGL where libEGL is installed, else OSMesa, else none. "none" keeps
+    `import mujoco` working on a server without either (MUJOCO_GL=egl there makes PyOpenGL raise an
+    AttributeError that MuJoCo does not catch, which would stop even the stages that never render);
+    the stages that do render then stop with their own message (pipeline/evaluation/video.py)."""
+    for library, backend in (("EGL", "egl"), ("OSMesa", "osmesa")):
+        if ctypes.util.find_library(library):
+            return backend
+    return "disable"
+
+
 # Headless by default (stages render previews and videos); MuJoCo reads this when first imported.
-os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("MUJOCO_GL", _headless_gl())
 
 REPO_ROOT = Path(__file__).resolve().parent.parent

@@ -8,7 +8,6 @@ stderr and exit code 2 (nothing half-written: every stage writes its outputs ato
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import Callable
@@ -29,7 +28,6 @@ def stage_main(run: Callable, description: str = "", argv: list[str] | None = No
     from pipeline.config import load_params
 
     args = stage_parser(description or (run.__doc__ or "").strip().splitlines()[0]).parse_args(argv)
-    os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         params = load_params(args.params)
         if args.task is not None and args.task not in params.tasks:
@@ -61,7 +59,6 @@ def main(argv: list[str] | None = None) -> None:
     share.add_argument("--repo-id", help="Hugging Face repo id to push to (needs network and a token)")
 
     args = parser.parse_args(argv)
-    os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         if args.command == "play":
             from pipeline.export.play import play_to_mp4

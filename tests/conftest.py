@@ -1,11 +1,9 @@
 """Test-wide settings and shared fixtures. Rendering is headless: MuJoCo picks its GL backend when first imported,
-so MUJOCO_GL must be set before any test module imports mujoco."""
-
-import os
+so MUJOCO_GL must be set before any test module imports mujoco: importing `pipeline` sets it (EGL here)."""
 
 import pytest
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import pipeline  # noqa: F401
 
 
 @pytest.fixture(scope="session")

@@ -57,7 +57,6 @@ def write_preview(human: HumanMotion, motion: Motion, path: str | Path, scale: f
 
 
 def _mujoco_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int):
-    os.environ.setdefault("MUJOCO_GL", "egl")
     import mujoco
 
     from pipeline.robot.g1 import build_model, joint_qpos_indices
