@@ -30,7 +30,10 @@ test: setup
 	$(PY) -m pytest -q
 
 bench: setup
-	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
+	for b in benchmarks/*.py; do \
+	  case $$b in *_gpu.py) $(PY) -c 'import sys, torch; sys.exit(not torch.cuda.is_available())' \
+	    || { echo "skip $$b: needs a CUDA GPU"; continue; };; esac; \
+	  $(PY) $$b || exit 1; done
 
 clean-venv:
 	rm -rf $(VENV)

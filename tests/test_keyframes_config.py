@@ -114,3 +114,18 @@ def test_edited_keyframe_missing_in_motion(jump):
     standing = synthetic_jump_motion([], duration=2.0)
     with pytest.raises(PipelineInputError, match="does not exist"):
         select_keyframes(standing, _task())
+
+
+def test_the_far_jump_gpu_recipe_loads_and_points_at_the_shared_clip():
+    """models/pretrained/far_jump/params.yaml: the gpu profile on the paper's far jump, its input
+    resolved from the file's own folder to ../shared beside the repository."""
+    from pipeline.config import load_params
+
+    root = Path(__file__).resolve().parents[1]
+    params = load_params(root / "models/pretrained/far_jump/params.yaml")
+    train = params.train
+    assert (train.profile, train.backend, train.device, train.ppo.num_envs) == ("gpu", "warp", "cuda", 4096)
+    assert train.time_limit_stage1_s > 0 and train.time_limit_stage2_s > 0
+    task = params.tasks["far_jump"]
+    assert (params.path.parent / task.input).resolve() == (root.parent / "shared/data/adamimic_smpl/far_jump.npz").resolve()
+    assert task.psi.raw == 1.1 and task.terrain.kind == "gap"

@@ -283,6 +283,9 @@ def test_curricula_follow_iterations_not_the_clock(tmp_path, monkeypatch):
     metrics = by_time.run(0, time_limit_s=60.0)
     calls = by_time.env.curriculum_calls
     assert metrics["iterations"] == len(calls) >= 2 and calls == sorted(calls) and 0 < calls[-1] <= 1.0
+    last, before = by_time.history[-1], by_time.history[-2]
+    assert 0 < last["collect_seconds"] and 0 < last["update_seconds"]  # where an iteration's time went
+    assert last["collect_seconds"] + last["update_seconds"] <= last["seconds"] - before["seconds"] + 1e-3
     with pytest.raises(ValueError, match="time limit"):
         _trainer(tmp_path / "none", cfg, seed=0).run(0)
 

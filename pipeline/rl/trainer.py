@@ -194,6 +194,11 @@ class Trainer:
             return self.env.reset()
         return obs
 
+    def _sync(self) -> None:
+        """Waits for queued GPU work, so that wall-clock splits of an iteration are true."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
     # -- the loop ---------------------------------------------------------------------------
     def run(self, iterations: int, resume: bool = False, time_limit_s: float | None = None) -> dict:
         """Trains `iterations` (0: until `time_limit_s` of wall time), saving as it goes.
@@ -221,10 +226,17 @@ class Trainer:
             progress = min((time.time() - t0) / time_limit_s, 1.0) if by_time else it / iterations
             self._curriculum(progress)
             self.policy.train()
+            collect_start = time.time()
             rollout, obs, extra = self.collect(obs)
+            self._sync()
+            update_start = time.time()
             stats = self.ppo.update(rollout)
             if self.amp is not None:
                 stats.update(self.amp.update(self.amp_reference, extra["amp_windows"]))
+            self._sync()
+            # Where an iteration's time goes (on a GPU the env's small kernels, not the physics, were
+            # the larger part: benchmarks/RESULTS.md).
+            stats.update({"collect_seconds": update_start - collect_start, "update_seconds": time.time() - update_start})
             stats.update(self.stats.summary())
             stats.update({"iteration": it + 1, "env_steps": (it + 1) * self.env.num_envs * self.cfg.ppo.steps_per_iteration,
                           "reward_sparse": rollout.rewards["sparse"].mean().item(),
