@@ -11,6 +11,10 @@ copies cost cache, which a robot standing on one shared model does not pay. That
 (sim/benchmark.py's definition) is printed too. The 2 cores are shared with other work, so all
 sides are measured interleaved in short alternating blocks and each side's time summed.
 
+It also counts the torch operators one env step dispatches outside the physics. On a GPU each one
+that is not a view is a kernel launch with its host cost, and that count, not the worlds, sets the
+env's own time there (RESULTS.md, *GPU*).
+
 Run: .venv/bin/python benchmarks/env_throughput.py   (no arguments, < 1 minute)
 Last line: env_steps_per_s=<n> raw_steps_per_s=<m> ratio=<r>
 """
@@ -25,6 +29,7 @@ import mujoco
 import numpy as np
 import torch
 from mujoco import rollout as mj_rollout
+from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -114,6 +119,48 @@ def home_state(model: mujoco.MjModel, qpos: np.ndarray, targets: np.ndarray, dec
     return np.tile(row, (NUM_WORLDS, 1)), np.tile(targets, (NUM_WORLDS, decimation, 1))
 
 
+class OperatorCount(TorchDispatchMode):
+    """Counts the aten operators dispatched while `counting` is on, by name."""
+
+    VIEWS = {"aten.slice", "aten.select", "aten.view", "aten.unsqueeze", "aten.squeeze", "aten.unbind",
+             "aten.expand", "aten.transpose", "aten.permute", "aten.t", "aten.alias", "aten._unsafe_view",
+             "aten.as_strided", "aten.detach", "aten.split", "aten.split_with_sizes", "aten.chunk"}
+
+    def __init__(self):
+        super().__init__()
+        self.counts, self.counting = {}, True
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if self.counting:
+            name = str(func.overloadpacket)
+            self.counts[name] = self.counts.get(name, 0) + 1
+        return func(*args, **(kwargs or {}))
+
+    def kernels(self) -> int:
+        return sum(n for name, n in self.counts.items() if name not in self.VIEWS)
+
+
+def operators_per_step(env, actions) -> tuple[float, float]:
+    """(operators, non-view operators) per env step, the backend's own stepping left out."""
+    counter, inner = OperatorCount(), env.backend.step
+
+    def physics_uncounted(*args, **kwargs):
+        counter.counting = False
+        try:
+            return inner(*args, **kwargs)
+        finally:
+            counter.counting = True
+
+    env.backend.step = physics_uncounted
+    try:
+        with counter:
+            for action in actions:
+                env.step(action)
+    finally:
+        env.backend.step = inner
+    return sum(counter.counts.values()) / len(actions), counter.kernels() / len(actions)
+
+
 def main() -> None:
     data = synthetic_tracking_data()
     env = TrackingEnv(EnvConfig(), data, num_envs=NUM_WORLDS, seed=0)
@@ -153,6 +200,9 @@ def main() -> None:
           f"domain randomisation on)")
     print(f"raw is the env's own physics replayed (same per-world models, states, controls); for reference, "
           f"raw standing on the shared model: {standing_rate:.0f} steps/s (env/standing={env_rate / standing_rate:.3f})")
+    operators, kernels = operators_per_step(env, actions)
+    print(f"torch operators per env step outside the physics: {operators:.0f} ({kernels:.0f} not views: "
+          f"kernel launches on a GPU)")
     print(f"env_steps_per_s={env_rate:.0f} raw_steps_per_s={raw_rate:.0f} ratio={env_rate / raw_rate:.3f}")
 
 
