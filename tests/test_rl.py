@@ -283,15 +283,24 @@ def test_curricula_follow_iterations_not_the_clock(tmp_path, monkeypatch):
     metrics = by_time.run(0, time_limit_s=60.0)
     calls = by_time.env.curriculum_calls
     assert metrics["iterations"] == len(calls) >= 2 and calls == sorted(calls) and 0 < calls[-1] <= 1.0
-    last, before = by_time.history[-1], by_time.history[-2]
-    assert 0 < last["collect_seconds"] and 0 < last["update_seconds"]  # where an iteration's time went
-    assert last["collect_seconds"] + last["update_seconds"] <= last["seconds"] - before["seconds"] + 1e-3
     with pytest.raises(ValueError, match="time limit"):
         _trainer(tmp_path / "none", cfg, seed=0).run(0)
 
 
+def test_history_splits_each_iteration_into_collection_and_update(tmp_path):
+    cfg = small_cfg(ppo={"num_envs": 16, "steps_per_iteration": 4, "epochs": 1, "minibatches": 1})
+    trainer = _trainer(tmp_path, cfg, seed=0)
+    trainer.run(3)
+    for before, h in zip(trainer.history, trainer.history[1:]):
+        assert h["collect_seconds"] > 0 and h["update_seconds"] > 0
+        assert h["collect_seconds"] + h["update_seconds"] <= h["seconds"] - before["seconds"] + 1e-3
+
+
 # ------------------------------------------------------------------------------------------ AMP
 def test_amp_style_reward_in_sparse_group(tmp_path):
+    # Seeded: unseeded, it read the RNG state the tests before it left, and after 2 iterations the
+    # discriminator separated the two sides at 7 seeds of 10; after 4, at 10 of 10.
+    torch.manual_seed(0)
     cfg = small_cfg(variant="amp_style")
     ref = torch.cumsum(torch.full((40, 2), 0.05), 0).numpy()
     windows = reference_windows(ref, 5, with_phase=False)
@@ -301,7 +310,7 @@ def test_amp_style_reward_in_sparse_group(tmp_path):
     policy, critic = make_stage1(env, cfg)
     trainer = Trainer(env, policy, critic, cfg, tmp_path, stage=1, meta=META, amp=amp, amp_reference=windows,
                       tensorboard=False, progress=False)
-    trainer.run(2)
+    trainer.run(4)
     h = trainer.history[-1]
     assert h["disc_real"] > h["disc_fake"]  # the discriminator separates reference from policy
     style = amp.style_reward(windows)

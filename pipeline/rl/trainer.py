@@ -226,17 +226,17 @@ class Trainer:
             progress = min((time.time() - t0) / time_limit_s, 1.0) if by_time else it / iterations
             self._curriculum(progress)
             self.policy.train()
-            collect_start = time.time()
+            collect_start = time.perf_counter()
             rollout, obs, extra = self.collect(obs)
             self._sync()
-            update_start = time.time()
+            update_start = time.perf_counter()
             stats = self.ppo.update(rollout)
             if self.amp is not None:
                 stats.update(self.amp.update(self.amp_reference, extra["amp_windows"]))
             self._sync()
             # Where an iteration's time goes (on a GPU the env's small kernels, not the physics, were
             # the larger part: benchmarks/RESULTS.md).
-            stats.update({"collect_seconds": update_start - collect_start, "update_seconds": time.time() - update_start})
+            stats.update({"collect_seconds": update_start - collect_start, "update_seconds": time.perf_counter() - update_start})
             stats.update(self.stats.summary())
             stats.update({"iteration": it + 1, "env_steps": (it + 1) * self.env.num_envs * self.cfg.ppo.steps_per_iteration,
                           "reward_sparse": rollout.rewards["sparse"].mean().item(),
