@@ -36,12 +36,17 @@ STEPS = 12
 ROOT_TOL = 0.01  # m, pelvis position after STEPS control steps
 
 
-@pytest.fixture(scope="module")
-def far_jump():
+def _far_jump_data(num_samples: int):
+    """D_edit of a synthetic 1 m far jump under the paper's far-jump task (gap terrain)."""
     tasks = load_tasks(load_yaml_strict(Path(__file__).resolve().parents[1] / "pipeline/keyframes/paper_tasks.yaml")["tasks"])
     motion = synthetic_jump_motion([Flight(1.0, 0.4, 1.1)], duration=2.0)
     task = tasks["far_jump"]
-    return build_tracking_data(motion, task, select_keyframes(motion, task), "edit", 8)
+    return build_tracking_data(motion, task, select_keyframes(motion, task), "edit", num_samples)
+
+
+@pytest.fixture(scope="module")
+def far_jump():
+    return _far_jump_data(8)
 
 
 @pytest.fixture
@@ -149,9 +154,7 @@ def test_env_on_the_gpu_moves_like_the_cpu_backend():
     """The gpu profile's training setting: env tensors and Warp worlds on CUDA. The two devices' RNG
     streams differ, so nothing is drawn: one ψ sample, no randomisation, no reference-state starts, no
     odometry noise. Both envs then start alike, on the same gap, and must stay together."""
-    tasks = load_tasks(load_yaml_strict(Path(__file__).resolve().parents[1] / "pipeline/keyframes/paper_tasks.yaml")["tasks"])
-    motion = synthetic_jump_motion([Flight(1.0, 0.4, 1.1)], duration=2.0)
-    data = build_tracking_data(motion, tasks["far_jump"], select_keyframes(motion, tasks["far_jump"]), "edit", 1)
+    data = _far_jump_data(1)
     cfg = EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0, "sampling": {"mode": "uniform"},
                                "observations": {"odometry_noise_std": 0.0}})
     gpu = TrackingEnv(cfg, data, num_envs=N, backend="warp", device="cuda")

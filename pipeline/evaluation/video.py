@@ -1,9 +1,9 @@
 """Offscreen MuJoCo rendering to mp4, with keyframe targets drawn as markers.
 
-Rendering runs headless through EGL (`MUJOCO_GL=egl`; on a machine without a GPU Mesa's llvmpipe
-serves it: Debian packages libegl1 + libegl-mesa0 + libgl1-mesa-dri) and falls back to OSMesa
-(libosmesa6) when EGL cannot start. Shadows, reflections, skybox and multisampling are off: at
-640x480 on llvmpipe that is ~20 frames/s instead of ~7. Frames are encoded with PyAV (H.264),
+Rendering runs headless through the GL that importing `pipeline` chose (`MUJOCO_GL`): EGL where
+libEGL is installed (on a machine without a GPU Mesa's llvmpipe serves it: Debian packages libegl1 +
+libegl-mesa0 + libgl1-mesa-dri), else OSMesa (libosmesa6). Shadows, reflections, skybox and
+multisampling are off: at 640x480 on llvmpipe that is ~20 frames/s instead of ~7. Frames are encoded with PyAV (H.264),
 or OpenCV's mp4v when PyAV is unavailable. No torch here: the deployment loop uses it too.
 """
 
@@ -20,20 +20,10 @@ MARKER_RGBA_PENDING = np.array([1.0, 0.55, 0.0, 0.8], dtype=np.float32)
 MARKER_RGBA_REACHED = np.array([0.1, 0.8, 0.2, 0.8], dtype=np.float32)
 
 
-def ensure_gl_backend() -> str:
-    """Picks EGL, else OSMesa, before MuJoCo's renderer is first created; returns the choice."""
-    if os.environ.get("MUJOCO_GL"):
-        return os.environ["MUJOCO_GL"]
-    os.environ["MUJOCO_GL"] = "egl"
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    return "egl"
-
-
 class SceneRenderer:
     """A fast offscreen renderer with a camera that follows the pelvis from the side."""
 
     def __init__(self, model: mujoco.MjModel, width: int = 640, height: int = 480):
-        ensure_gl_backend()
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
         model.vis.global_.offheight = max(model.vis.global_.offheight, height)
         model.vis.quality.offsamples = 0
