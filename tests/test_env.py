@@ -556,6 +556,42 @@ def test_dense_tracking_variant(data):
     assert info["keyframe_crossed"].all()  # crossings still reported for evaluation
 
 
+def test_compiled_step_matches_the_eager_step(data, monkeypatch):
+    """`env.compile` fuses the step's rewards, terminations and observations: same episodes as eager
+    (randomisation, resets and keyframe terminations included), and the curricula's changes of the
+    threshold and penalty scale reach the compiled step without compiling it again."""
+    import torch._dynamo
+
+    far = TrackingData(**{**data.__dict__, "keyframe_offsets": data.keyframe_offsets + np.array([0.0, 0.0, 1.0])})
+    runs = {}
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        env = TrackingEnv(EnvConfig.from_dict({"compile": compiled}), far, num_envs=N)
+        env.reset()
+        gen = torch.Generator().manual_seed(1)
+        steps = []
+        for i in range(75):  # the clip's 60 steps and a second episode
+            if i == 5:
+                env.set_termination_threshold(0.6)  # the 1 m high keyframe targets now end episodes
+                env.penalty_scale = 0.3
+                torch._dynamo.reset()  # any later compilation is a recompilation
+                monkeypatch.setattr(torch._dynamo.config, "error_on_recompile", compiled)
+            if i == 40:
+                env.set_termination_threshold(0.7)
+                env.penalty_scale = 0.6
+            obs, rew, term, trunc, info = env.step(0.5 * torch.randn(N, env.action_dim, generator=gen))
+            steps.append((obs["critic"], rew["sparse"], rew["dense"], term, trunc, info["keyframe_crossed"],
+                          info["terminated_by"]["keyframe_error"], info["body_pos_error_local"]))
+        runs[compiled] = steps
+    assert sum(int(s[6].sum()) for s in runs[False]) > 0  # some episodes ended at a keyframe
+    for eager, fused in zip(runs[False], runs[True]):
+        for a, b in zip(eager, fused):
+            if a.dtype == torch.bool:
+                assert torch.equal(a, b)
+            else:
+                torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+
+
 def test_pushes_kick_the_base(data):
     cfg = quiet_cfg(randomization={"enabled": True, "push": {"interval_s": [0.02, 0.02], "max_vel_xy": 1.0}})
     env = TrackingEnv(cfg, data, num_envs=N)

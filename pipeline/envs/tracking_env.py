@@ -36,6 +36,10 @@ from pipeline.keyframes.tracking_data import TrackingData
 from pipeline.robot.g1 import joint_limits, load_robot_config
 
 FRAME_OBS_DIM = 3 + 3 + 27 + 27 + 27 + 1 + 1 + 3  # per history step (for the 27-joint G1)
+# The dense group's terms in the order `_score` stacks them (the global ones only in dense tracking).
+_DENSE_TERMS = ("local_body_pos", "local_body_rot", "local_joint_pos", "feet_orientation", "joint_acc", "joint_vel",
+                "action_rate", "smoothness", "torques", "torque_limits", "joint_pos_limits", "joint_vel_limits")
+_GLOBAL_TERMS = ("global_body_pos", "global_body_rot", "global_feet_pos")
 _EPS = 1e-6
 
 
@@ -80,6 +84,12 @@ class TrackingEnv:
 
         self.termination_threshold = float(cfg.terminations.keyframe_error.start)
         self.penalty_scale = 1.0  # the paper's weights until a trainer's curriculum says otherwise
+        # The per-step tensor work, compiled into a few fused kernels when asked (`env.compile`): on a
+        # GPU the eager step is ~450 small launches whose host time, not the worlds, sets its speed.
+        self._score_fn, self._observe_fn = self._score, self._observe
+        if cfg.compile:
+            self._score_fn = torch.compile(self._score, fullgraph=True, dynamic=False)
+            self._observe_fn = torch.compile(self._observe, fullgraph=True, dynamic=False)
         self.penalty_curriculum_started = False
         # episodes finished / terminated since the last curriculum update (the penalty curriculum's input),
         # kept as device tensors so counting them costs no host sync per step
@@ -298,11 +308,37 @@ class TrackingEnv:
         self.termination_threshold = float(min(max(value, c.min), c.max))
         return self.termination_threshold
 
+    @property
+    def termination_threshold(self) -> float:
+        """The keyframe-error termination threshold (m) the curriculum sets; inf: falls only."""
+        return self._termination_threshold
+
+    @termination_threshold.setter
+    def termination_threshold(self, value: float) -> None:
+        self._termination_threshold = value = float(value)
+        # The step compares against a device tensor made once per change: a Python float would be a
+        # copy to the device every step, and a constant that a compiled step recompiles for.
+        squared = self.cfg.terminations.keyframe_error.measure == "max"
+        self._threshold_tensor = torch.tensor(value * value if squared else value, device=self.device)
+
+    @property
+    def penalty_scale(self) -> float:
+        """Factor on the dense penalties' weights (the penalty curriculum's; 1: the paper's weights)."""
+        return self._penalty_scale
+
+    @penalty_scale.setter
+    def penalty_scale(self, value: float) -> None:
+        self._penalty_scale = value = float(value)
+        w, dt = self.cfg.rewards.weights, self.control_dt if self.cfg.rewards.scale_by_dt else 1.0
+        names = list(_DENSE_TERMS) + (list(_GLOBAL_TERMS) if self.cfg.variant.tracking == "dense" else [])
+        weights = [getattr(w, name) * (value if getattr(w, name) < 0 else 1.0) * dt for name in names]
+        self._dense_weights = torch.tensor(weights, device=self.device)
+
     def _keyframe_error_exceeded(self, err2: torch.Tensor) -> torch.Tensor:
         """(N, bodies) squared position errors -> (N,) past the keyframe-error termination threshold."""
         if self.cfg.terminations.keyframe_error.measure == "mean":
-            return err2.sqrt().mean(-1) > self.termination_threshold
-        return err2.max(-1).values > self.termination_threshold**2
+            return err2.sqrt().mean(-1) > self._threshold_tensor
+        return err2.max(-1).values > self._threshold_tensor
 
     def update_curriculum(self, progress: float) -> float:
         """Called once per training iteration. Sets the keyframe-error termination threshold
@@ -347,7 +383,7 @@ class TrackingEnv:
             return self._step(action, phase_rate_offset)
 
     def _step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None):
-        cfg, w = self.cfg, self.cfg.rewards.weights
+        cfg = self.cfg
         action = action.to(self.device, torch.float32).clamp(-cfg.action_clip, cfg.action_clip)
 
         # ---- phase (first: the reference action offset aims at the frame this step ends on)
@@ -355,8 +391,7 @@ class TrackingEnv:
         if phase_rate_offset is not None:
             off = phase_rate_offset.to(self.device, torch.float64).reshape(-1)
             dphi = dphi + off.clamp(-0.75 * self.dphi, self.dphi)
-        prev_phase = self.phase
-        self.phase = phase = prev_phase + dphi
+        self.phase = phase = self.phase + dphi
         self.frame = frame = (phase * (self.num_frames - 1)).round().long().clamp_(0, self.num_frames - 1)
         self.episode_step += 1
 
@@ -364,13 +399,55 @@ class TrackingEnv:
         self._apply_pushes()
         self.backend.step(self._delayed_control(target))
 
+        noise_std = cfg.observations.odometry_noise_std
+        odometry_noise = torch.randn(self.num_envs, 3, device=self.device) * noise_std if noise_std > 0 else None
         b = self.backend
-        qpos, qvel = b.qpos, b.qvel
+        s = self._score_fn(b.qpos, b.qvel, b.site_pos, b.site_quat, b.actuator_force, b.foot_contact, action)
+        terminated, truncated, crossed = s["terminated"], s["truncated"], s["crossed"]
+        self.next_kf = s["next_kf"]
+        self.prev_action2, self.prev_action = self.prev_action, action
+        self.prev_joint_vel = s["joint_vel"]
+        self.obs_history, self.privileged, self.odometry = self._observe_fn(s["gravity"], odometry_noise)
+        final_obs = self._obs_dict()  # pre-reset: the finished episodes' last observations
+        info = {
+            "keyframe_crossed": crossed,
+            "keyframe_index": s["crossed_kf"],
+            "body_pos_error_w": s["error_w"],
+            "keyframe_body_error_w": s["keyframe_error_w"],
+            "keyframe_miss_w": s["keyframe_miss_w"],
+            "body_pos_error_local": s["local_error"],
+            "joint_acc": s["joint_acc"],
+            "phase": phase.to(torch.float32),
+            "frame": frame.clone(),
+            "joint_pos": s["joint_pos"],
+            "psi": self.psi[self.sample],
+            "sample": self.sample.clone(),
+            "terms": s["terms"],
+            "final_obs": final_obs,
+            "termination_threshold": self.termination_threshold,
+            # which checks fired (several may on one step): diagnostics for the trainer's log
+            "terminated_by": {"keyframe_error": s["by_keyframe"], "tilt": s["by_tilt"], "base_height": s["by_height"]},
+        }
+        sparse, dense = s["sparse"], s["dense"]
+        done = terminated | truncated
+        self.episodes_finished = self.episodes_finished + done.sum()
+        self.episodes_terminated = self.episodes_terminated + terminated.sum()
+        if bool(done.any()):
+            ended = done.nonzero().squeeze(-1)
+            tested = ended[self.start_frame[ended] < self.first_edit_frame]
+            self.sampler.record(tested, self.sample[tested], terminated[tested])
+            self._reset_worlds(ended)
+        return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
+
+    def _score(self, qpos, qvel, site_pos, site_quat, torque, foot_contact, action):
+        """Rewards and terminations of every world after the physics step, as one pure tensor function
+        of the state: no host sync and no data-dependent shapes (the worlds that cross a keyframe are
+        selected by masks, not indices), so a step costs the same launches whatever happens in it and
+        `env.compile` can fuse it whole."""
+        cfg, w = self.cfg, self.cfg.rewards.weights
+        phase, frame, sample = self.phase, self.frame, self.sample
         root_pos, root_quat = qpos[:, 0:3], qpos[:, 3:7]
         joint_pos, joint_vel = qpos[:, 7:], qvel[:, 6:]
-        site_pos, site_quat = b.site_pos, b.site_quat
-        crossed = phase >= self.kf_phase_padded[self.next_kf] - _EPS
-        crossed_kf = torch.full_like(self.next_kf, -1)
 
         # ---- dense group
         root_q = root_quat[:, None].expand_as(site_quat)
@@ -379,12 +456,11 @@ class TrackingEnv:
         local_quat = quat_mul(quat_conjugate(root_q), site_quat)
         s2 = cfg.rewards.sigma2
         joint_acc = (joint_vel - self.prev_joint_vel) / self.control_dt
-        torque = b.actuator_force
         terms = {
             "local_body_pos": torch.exp(-(local_err2 * self.inv_sigma2_pos).mean(-1)),
             "local_body_rot": R.rotation_kernel(local_quat, self.ref_local_quat[frame], s2.body_rot),
             "local_joint_pos": R.joint_kernel(joint_pos, self.ref_joint_pos[frame], s2.joint_pos),
-            "feet_orientation": R.feet_orientation(site_quat[:, self.feet_idx], b.foot_contact.to(torch.float32)),
+            "feet_orientation": R.feet_orientation(site_quat[:, self.feet_idx], foot_contact.to(torch.float32)),
             "joint_acc": R.sum_sq(joint_acc),
             "joint_vel": R.sum_sq(joint_vel),
             "action_rate": R.sum_sq(action - self.prev_action),
@@ -394,41 +470,33 @@ class TrackingEnv:
             "joint_pos_limits": R.outside_range(joint_pos, self.soft_pos_low, self.soft_pos_high),
             "joint_vel_limits": R.over_limit(joint_vel, self.soft_vel_limit),
         }
-        dense = 0.0
-        for k, v in terms.items():
-            weight = getattr(w, k)
-            dense = dense + (weight * self.penalty_scale if weight < 0 else weight) * v
+        dense_terms = [terms[name] for name in _DENSE_TERMS]
 
         # ---- global errors against the (edited) reference at the current frame: info + dense variant
-        ref_pos_w = self.ref_body_pos[frame] + self.offset_table[self.sample, frame][:, None]
+        ref_pos_w = self.ref_body_pos[frame] + self.offset_table[sample, frame][:, None]
         err2_w = ((site_pos - ref_pos_w) ** 2).sum(-1)
         error_w = err2_w.sqrt()
-        keyframe_error_w = error_w  # replaced on crossing rows by the error against the keyframe target
-        keyframe_miss_w = torch.zeros(self.num_envs, 3, device=self.device)  # mean body − target, crossing rows
-        sparse = torch.zeros(self.num_envs, device=self.device)
-        terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        terminated = torch.zeros_like(phase, dtype=torch.bool)
         if cfg.variant.tracking == "dense":
-            g = self._global_terms(err2_w, site_quat, self.ref_body_quat[frame])
-            dense = dense + w.global_body_pos * g[0] + w.global_body_rot * g[1] + w.global_feet_pos * g[2]
-            terminated |= self._keyframe_error_exceeded(err2_w)
-        by_keyframe = terminated.clone()
+            dense_terms += self._global_terms(err2_w, site_quat, self.ref_body_quat[frame])
+            terminated = self._keyframe_error_exceeded(err2_w)
+        # the weights carry the penalty curriculum and the control step (see `penalty_scale`)
+        dense = (torch.stack(dense_terms, -1) * self._dense_weights).sum(-1)
 
-        # ---- sparse group: only worlds crossing a keyframe this step
-        if bool(crossed.any()):
-            ids = crossed.nonzero().squeeze(-1)
-            k = torch.searchsorted(self.kf_phase, phase[ids] + _EPS, right=True) - 1
-            self.next_kf[ids] = k + 1
-            crossed_kf[ids] = k
-            miss = site_pos[ids] - self.kf_target_pos[self.sample[ids], k]
-            err2 = (miss**2).sum(-1)
-            keyframe_error_w = error_w.index_put((ids,), err2.sqrt())
-            keyframe_miss_w = keyframe_miss_w.index_put((ids,), miss.mean(1))
-            if cfg.variant.tracking == "sparse":
-                g = self._global_terms(err2, site_quat[ids], self.kf_target_quat[k])
-                sparse[ids] = self.kf_scale[k] * (w.global_body_pos * g[0] + w.global_body_rot * g[1]
-                                                  + w.global_feet_pos * g[2])
-                by_keyframe[ids] |= self._keyframe_error_exceeded(err2)
-                terminated |= by_keyframe
+        # ---- sparse group: paid by the worlds crossing a keyframe this step, against its target
+        crossed = phase >= self.kf_phase_padded[self.next_kf] - _EPS
+        k = (torch.searchsorted(self.kf_phase, phase + _EPS, right=True) - 1).clamp(min=0)
+        miss = site_pos - self.kf_target_pos[sample, k]
+        err2 = (miss**2).sum(-1)
+        keyframe_error_w = torch.where(crossed[:, None], err2.sqrt(), error_w)
+        keyframe_miss_w = torch.where(crossed[:, None], miss.mean(1), 0.0)
+        sparse = torch.zeros_like(error_w[:, 0])
+        if cfg.variant.tracking == "sparse":
+            g = self._global_terms(err2, site_quat, self.kf_target_quat[k])
+            paid = self.kf_scale[k] * (w.global_body_pos * g[0] + w.global_body_rot * g[1] + w.global_feet_pos * g[2])
+            sparse = torch.where(crossed, paid, 0.0)
+            terminated = crossed & self._keyframe_error_exceeded(err2)
+        by_keyframe = terminated
 
         # ---- terminations
         gravity = projected_gravity(root_quat)
@@ -439,48 +507,22 @@ class TrackingEnv:
         if self.height_termination:
             min_height = torch.full_like(root_pos[:, 2], tc.min_base_height)
             if tc.relative_to_reference:
-                ref_z = self.ref_root_pos[frame, 2] + self.offset_table[self.sample, frame, 2]
+                ref_z = self.ref_root_pos[frame, 2] + self.offset_table[sample, frame, 2]
                 min_height = torch.minimum(min_height, ref_z - tc.base_height_margin)
             by_height = root_pos[:, 2] < min_height
-        terminated |= by_tilt | by_height
+        terminated = terminated | by_tilt | by_height
         truncated = (phase >= 1.0 - _EPS) & ~terminated
         sparse = sparse + w.termination * terminated.to(torch.float32)
-        if cfg.rewards.scale_by_dt:
-            dense = dense * self.control_dt
-
-        # ---- observations (pre-reset ones are the finished episodes' last)
-        self.prev_action2, self.prev_action = self.prev_action, action
-        self.prev_joint_vel = joint_vel.clone()  # the backend refreshes its views in place
-        self._observe(gravity)
-        final_obs = self._obs_dict()
-        info = {
-            "keyframe_crossed": crossed,
-            "keyframe_index": crossed_kf,
-            "body_pos_error_w": error_w,
-            "keyframe_body_error_w": keyframe_error_w,
-            "keyframe_miss_w": keyframe_miss_w,
-            "body_pos_error_local": local_err2.sqrt(),
-            "joint_acc": joint_acc,
-            "phase": phase.to(torch.float32),
-            "frame": frame.clone(),
-            "joint_pos": joint_pos.clone(),
-            "psi": self.psi[self.sample],
-            "sample": self.sample.clone(),
-            "terms": terms,
-            "final_obs": final_obs,
-            "termination_threshold": self.termination_threshold,
-            # which checks fired (several may on one step): diagnostics for the trainer's log
-            "terminated_by": {"keyframe_error": by_keyframe, "tilt": by_tilt, "base_height": by_height},
+        return {
+            "dense": dense, "sparse": sparse, "terms": terms,
+            "terminated": terminated, "truncated": truncated,
+            "by_keyframe": by_keyframe, "by_tilt": by_tilt, "by_height": by_height,
+            "crossed": crossed, "crossed_kf": torch.where(crossed, k, -1), "next_kf": torch.where(crossed, k + 1, self.next_kf),
+            "error_w": error_w, "keyframe_error_w": keyframe_error_w, "keyframe_miss_w": keyframe_miss_w,
+            "local_error": local_err2.sqrt(), "joint_acc": joint_acc, "gravity": gravity,
+            # copies: the backend refreshes its state views in place at the next step
+            "joint_pos": joint_pos.clone(), "joint_vel": joint_vel.clone(),
         }
-        done = terminated | truncated
-        self.episodes_finished = self.episodes_finished + done.sum()
-        self.episodes_terminated = self.episodes_terminated + terminated.sum()
-        if bool(done.any()):
-            ended = done.nonzero().squeeze(-1)
-            tested = ended[self.start_frame[ended] < self.first_edit_frame]
-            self.sampler.record(tested, self.sample[tested], terminated[tested])
-            self._reset_worlds(ended)
-        return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
 
     # ------------------------------------------------------------------------------------ resume
     # Per-world buffers that, with the physics state and the per-world model, decide every future step.
@@ -587,8 +629,9 @@ class TrackingEnv:
         lo, hi = self.cfg.randomization.push.interval_s
         return lo + (hi - lo) * torch.rand(n, device=self.device)
 
-    def _frame_features(self, ids, gravity=None):
-        """The 92-d actor observation of one step for worlds `ids` (None: all)."""
+    def _frame_features(self, ids, gravity=None, noise=None):
+        """The 92-d actor observation of one step, the critic's privileged tail and the odometry, for
+        worlds `ids` (None: all). Odometry noise is drawn here unless given."""
         b = self.backend
         sel = (lambda x: x) if ids is None else (lambda x: x[ids])
         qpos, qvel = sel(b.qpos), sel(b.qvel)
@@ -597,13 +640,11 @@ class TrackingEnv:
         step = sel(self.episode_step)
         fresh = quat_rotate_inverse(sel(self.odom_origin_quat), qpos[:, 0:3] - sel(self.odom_origin))
         std = self.cfg.observations.odometry_noise_std
-        if std > 0:
-            fresh = fresh + std * torch.randn(fresh.shape, device=self.device)
+        if noise is None and std > 0:
+            noise = std * torch.randn(fresh.shape, device=self.device)
+        if noise is not None:
+            fresh = fresh + noise
         odom = torch.where((step % self.odom_every == 0)[:, None], fresh, sel(self.odometry))
-        if ids is None:
-            self.odometry = odom
-        else:
-            self.odometry[ids] = odom
         phase, sample = sel(self.phase).to(torch.float32), sel(self.sample)
         frame_obs = torch.cat([
             qvel[:, 3:6], gravity, qpos[:, 7:] - self.default_joint_pos, qvel[:, 6:], sel(self.prev_action),
@@ -612,11 +653,12 @@ class TrackingEnv:
         lin_vel_b = quat_rotate_inverse(qpos[:, 3:7], qvel[:, 0:3])
         to_next = (self.kf_phase_padded[sel(self.next_kf)] - sel(self.phase)).clamp(max=1.0).to(torch.float32)
         privileged = torch.cat([lin_vel_b, self.ref_joint_pos[sel(self.frame)], qpos[:, 2:3], to_next[:, None]], dim=-1)
-        return frame_obs, privileged
+        return frame_obs, privileged, odom
 
-    def _observe(self, gravity) -> None:
-        frame_obs, self.privileged = self._frame_features(None, gravity)
-        self.obs_history = torch.cat([self.obs_history[:, 1:], frame_obs[:, None]], dim=1)
+    def _observe(self, gravity, noise):
+        """Every world's next (obs_history, privileged, odometry), pure like `_score`."""
+        frame_obs, privileged, odom = self._frame_features(None, gravity, noise)
+        return torch.cat([self.obs_history[:, 1:], frame_obs[:, None]], dim=1), privileged, odom
 
     def _obs_dict(self) -> dict[str, torch.Tensor]:
         actor = self.obs_history.reshape(self.num_envs, -1)
@@ -665,7 +707,8 @@ class TrackingEnv:
         self.odom_origin[ids] = self.ref_root_pos[0] + self.offset_table[sample, 0]
         self.odom_origin_quat[ids] = yaw_quat(self.ref_root_quat[0])
         self.push_timer[ids] = self._push_interval(n)
-        frame_obs, privileged = self._frame_features(ids)
+        frame_obs, privileged, odom = self._frame_features(ids)
+        self.odometry[ids] = odom
         hist = self.obs_history.clone()
         hist[ids] = frame_obs[:, None].expand(-1, self.cfg.observations.history, -1)
         self.obs_history = hist
