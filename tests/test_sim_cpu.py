@@ -71,6 +71,41 @@ def test_set_state_reads_back_and_makes_site_poses_current(model):
     np.testing.assert_allclose(backend.site_pos[[1, 2], 0].numpy(), qpos[:, 0:3], atol=1e-5)
 
 
+@pytest.mark.parametrize("kind", ["cpu", "warp"])
+def test_set_state_without_forward_leaves_the_next_step_unchanged(model, kind):
+    """forward=False writes qpos/qvel only (derived views stay stale until the next step): the step
+    after it is the step after a full set_state."""
+    kwargs = {}
+    if kind == "warp":
+        pytest.importorskip("mujoco_warp")
+        kwargs = {"device": "cpu", "allow_warp_on_cpu": True}
+    rng = np.random.default_rng(1)
+    home = default_state_qpos(model)
+    qpos = np.tile(home, (2, 1))
+    qpos[:, 2] += 0.02  # lands on its feet within the steps below
+    qpos[:, 7:] += rng.uniform(-0.1, 0.1, (2, model.nq - 7))
+    qvel = rng.normal(0, 0.1, (2, model.nv))
+    ctrl = torch.tensor(_targets(model, home), dtype=torch.float32).expand(3, -1)
+    runs = []
+    for forward in (True, False):
+        backend = make_backend(kind, model, 3, **kwargs)
+        backend.step(ctrl)
+        stale_sites = backend.site_pos[1].clone()
+        backend.set_state(torch.tensor([1, 2]), torch.tensor(qpos), torch.tensor(qvel), forward=forward)
+        np.testing.assert_allclose(backend.qpos[[1, 2]].numpy(), qpos, atol=1e-6)
+        np.testing.assert_allclose(backend.qvel[[1, 2]].numpy(), qvel, atol=1e-6)
+        assert torch.equal(backend.site_pos[1], stale_sites) != forward
+        states = []
+        for _ in range(5):
+            backend.step(ctrl)
+            states.append(torch.cat([backend.qpos.flatten(), backend.site_pos.flatten(), backend.actuator_force.flatten(),
+                                     backend.foot_contact.flatten().float()]))
+        runs.append(torch.stack(states))
+        backend.close()
+    assert runs[0][-1, -6:].any()  # feet in contact by the end
+    torch.testing.assert_close(runs[1], runs[0], rtol=0.0, atol=1e-6 if kind == "warp" else 0.0)
+
+
 def test_gravity_fall_matches_single_world_mj_step_exactly(model):
     """No contacts, no active constraints: rollout's worlds must equal a plain mj_step loop bit for bit."""
     n, steps = 3, 10

@@ -622,7 +622,7 @@ class TrackingEnv:
         kick = torch.rand(ids.numel(), 3, device=self.device) * 2 - 1
         qvel[:, 0:2] += push.max_vel_xy * kick[:, :2]
         qvel[:, 5] += push.max_vel_yaw * kick[:, 2]
-        self.backend.set_state(ids, self.backend.qpos[ids].clone(), qvel)
+        self.backend.set_state(ids, self.backend.qpos[ids].clone(), qvel, forward=False)  # the step's views: after it
         self.push_timer[ids] = self._push_interval(ids.numel())
 
     def _push_interval(self, n: int) -> torch.Tensor:
@@ -679,7 +679,7 @@ class TrackingEnv:
         if self.rsi_vel_noise is not None:  # None when off: no draw, the same random stream as without it
             started_late = (frame > 0)[:, None].to(qvel.dtype)
             qvel[:, 0:6] += started_late * self.rsi_vel_noise * (2.0 * torch.rand(n, 6, device=dev) - 1.0)
-        self.backend.set_state(ids, qpos, qvel)
+        self.backend.set_state(ids, qpos, qvel, forward=False)  # observations read qpos/qvel only
 
         ids_np = ids.cpu().numpy()
         sample_np = sample.cpu().numpy()

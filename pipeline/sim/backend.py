@@ -73,8 +73,11 @@ class PhysicsBackend(ABC):
             raise PipelineInputError(_SOURCE, "decimation", f"must be >= 1, got {self.decimation}")
 
     @abstractmethod
-    def set_state(self, world_ids, qpos, qvel) -> None:
-        """Sets qpos (n, nq) / qvel (n, nv) of worlds `world_ids` (n,) and recomputes their views."""
+    def set_state(self, world_ids, qpos, qvel, *, forward: bool = True) -> None:
+        """Sets qpos (n, nq) / qvel (n, nv) of worlds `world_ids` (n,) and recomputes their views.
+        With forward=False only the qpos/qvel views change: the derived ones (sites, contacts,
+        actuator forces) keep their old values until the next step, which computes them anyway. That
+        saves a forward pass (on Warp one over every world) where nothing reads them in between."""
 
     @abstractmethod
     def step(self, ctrl: torch.Tensor) -> None:

@@ -134,7 +134,7 @@ class CpuBackend(PhysicsBackend):
 
     # ---- state ----
 
-    def set_state(self, world_ids, qpos, qvel) -> None:
+    def set_state(self, world_ids, qpos, qvel, *, forward: bool = True) -> None:
         ids = self._world_ids(world_ids)
         qpos, qvel = self._check_state(len(ids), qpos, qvel)
         if len(ids) == 0:
@@ -142,6 +142,11 @@ class CpuBackend(PhysicsBackend):
         self._state0[ids] = 0.0  # time, act, history... start afresh
         self._state0[ids, self._qpos_at:self._qpos_at + self.nq] = qpos
         self._state0[ids, self._qvel_at:self._qvel_at + self.nv] = qvel
+        if not forward:
+            self._np["qpos"][ids] = qpos
+            self._np["qvel"][ids] = qvel
+            self._push_to_device()
+            return
         # Derived views for the new states: mj_forward per reset world on one scratch MjData.
         # Only reset worlds loop here (a few per step); actuator forces use the last targets.
         data = self._scratch[0]

@@ -126,7 +126,7 @@ class WarpBackend(PhysicsBackend):
 
     # ---- state ----
 
-    def set_state(self, world_ids, qpos, qvel) -> None:
+    def set_state(self, world_ids, qpos, qvel, *, forward: bool = True) -> None:
         ids = self._world_ids(world_ids)
         qpos, qvel = self._check_state(len(ids), qpos, qvel)
         if len(ids) == 0:
@@ -136,6 +136,8 @@ class WarpBackend(PhysicsBackend):
         self.qvel[index] = torch.as_tensor(qvel, dtype=torch.float32, device=self.device)
         self._warmstart[index] = 0.0
         self._time[index] = 0.0
+        if not forward:
+            return
         # mjw.forward has no world mask: it refreshes every world's derived quantities at its
         # current state (the state itself is untouched), which is one forward pass per call, so
         # call set_state once per step with all the worlds to reset.
