@@ -415,3 +415,39 @@ def test_actor_gradient_is_not_scaled_by_the_critics(tmp_path):
     stats = ppo.update(ro)
     assert stats["grad_norm_actor"] > 1e-3 and stats["grad_norm_critic"] > 1e-3
     assert stats["value_loss_sparse"] < 100.0  # regressed in units of the group's return spread
+
+
+def test_episode_stats_record_each_finished_episode():
+    """Three worlds over three steps: one falls, one times out, one times out after missing a keyframe
+    by more than 1 m (a failure without a termination). The figures reach the window once, in order."""
+    from pipeline.rl.trainer import EpisodeStats
+
+    stats = EpisodeStats(3, "cpu", window=3)
+    no = torch.zeros(3, dtype=torch.bool)
+    steps = [  # (sparse, dense, terminated, truncated, crossed, body error (m), fell by tilt)
+        ([1.0, 2.0, 3.0], [0.5, 0.5, 0.5], no, no, [False, False, True], [0.0, 0.0, 1.5], no),
+        ([-200.0, 1.0, 1.0], [0.5, 0.5, 0.5], torch.tensor([True, False, False]), no, no.tolist(), [0.0] * 3,
+         torch.tensor([True, False, False])),
+        ([7.0, 1.0, 1.0], [0.25, 0.25, 0.25], no, torch.tensor([False, True, True]), no.tolist(), [0.0] * 3, no),
+    ]
+    for sparse, dense, terminated, truncated, crossed, err, tilt in steps:
+        info = {"keyframe_crossed": torch.tensor(crossed), "body_pos_error_w": torch.tensor(err)[:, None].expand(3, 17),
+                "terminated_by": {"tilt": tilt, "keyframe_error": no}}
+        stats.step({"sparse": torch.tensor(sparse), "dense": torch.tensor(dense)}, terminated, truncated, info)
+    ended = {"ended_by_tilt": 0.0, "ended_by_keyframe_error": 0.0}
+    assert stats.finished == [
+        {"success": 0.0, "length": 2.0, "sparse": -199.0, "dense": 1.0, **ended, "ended_by_tilt": 1.0},
+        {"success": 1.0, "length": 3.0, "sparse": 4.0, "dense": 1.25, **ended},
+        {"success": 0.0, "length": 3.0, "sparse": 5.0, "dense": 1.25, **ended},
+    ]
+    summary = stats.summary()
+    assert summary["success_rate"] == pytest.approx(1 / 3) and summary["ended_by_tilt"] == pytest.approx(1 / 3)
+    # world 0 restarted after its fall: one step of its next episode is counted from zero
+    assert stats.steps.tolist() == [1, 0, 0] and stats.returns["sparse"].tolist() == [7.0, 0.0, 0.0]
+    stats.step({"sparse": torch.ones(3), "dense": torch.ones(3)}, torch.tensor([True, False, False]), no,
+               {"terminated_by": {"tilt": no, "keyframe_error": no}})
+    restored = EpisodeStats(3, "cpu", window=3)
+    restored.load_state_dict(stats.state_dict())
+    assert restored.finished == stats.finished and len(stats.finished) == 3  # the window keeps the last 3
+    assert stats.finished[-1] == {"success": 0.0, "length": 2.0, "sparse": 8.0, "dense": 1.25,
+                                  "ended_by_tilt": 0.0, "ended_by_keyframe_error": 0.0}

@@ -213,18 +213,18 @@ class PPO:
                 self.optimizer.step()
 
                 updates += 1
-                stats["policy_loss"] += policy_loss.item()
-                stats["value_loss_sparse"] += value_losses["sparse"].item()
-                stats["value_loss_dense"] += value_losses["dense"].item()
-                stats["entropy"] += entropy.mean().item()
-                stats["kl"] += kl.item()
-                stats["l2c2"] += l2c2_loss.item()
-                stats["clip_frac"] += ((ratio - 1).abs() > cfg.clip).float().mean().item()
-                stats["grad_norm_actor"] += float(grad_actor)
-                stats["grad_norm_critic"] += float(grad_critic)
+                # summed on the device and read once after the epochs: an .item() here would wait
+                # for each minibatch's backward pass on a GPU
+                minibatch = {"policy_loss": policy_loss, "value_loss_sparse": value_losses["sparse"],
+                             "value_loss_dense": value_losses["dense"], "entropy": entropy.mean(), "kl": kl,
+                             "l2c2": l2c2_loss, "clip_frac": ((ratio - 1).abs() > cfg.clip).float().mean(),
+                             "grad_norm_actor": grad_actor, "grad_norm_critic": grad_critic}
+                for k, v in minibatch.items():
+                    stats[k] = stats[k] + v.detach().double()
         self.policy.update_normalizers(rollout.actor_obs)
         self.critic.update_normalizers(rollout.critic_obs)
-        out = {k: v / max(updates, 1) for k, v in stats.items()}
+        totals = torch.stack([torch.as_tensor(v, dtype=torch.float64, device=adv.device) for v in stats.values()]).tolist()
+        out = {k: v / max(updates, 1) for k, v in zip(stats, totals)}
         out["learning_rate"] = self.learning_rate
         out["action_std"] = float(old_std.mean())
         for g in GROUPS:
