@@ -15,6 +15,8 @@ The policy is any module with `sample(obs)`, `log_prob_entropy(obs, raw)`, `raw_
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import torch
@@ -234,10 +236,13 @@ class PPO:
     def _l2c2(self, idx, obs_a, obs_c, has_next, num_envs, mean, values) -> torch.Tensor:
         """L2C2: outputs at an observation and at a random point towards the next observation of the
         same episode should agree (a local Lipschitz-like constraint that smooths the policy)."""
-        keep = idx[has_next[idx]]
+        sel = has_next[idx]
+        if self.cfg.l2c2_fraction < 1.0:  # idx is a slice of a random permutation: its head is a random subset
+            head = math.ceil(self.cfg.l2c2_fraction * idx.numel())
+            sel = sel & (torch.arange(idx.numel(), device=idx.device) < head)
+        keep = idx[sel]
         if keep.numel() == 0:
             return torch.zeros((), device=mean.device)
-        sel = has_next[idx]
         u = torch.rand(keep.shape[0], 1, device=mean.device)
         mid_a = obs_a[keep] + u * (obs_a[keep + num_envs] - obs_a[keep])
         mid_c = obs_c[keep] + u * (obs_c[keep + num_envs] - obs_c[keep])
