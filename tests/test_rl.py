@@ -451,3 +451,28 @@ def test_episode_stats_record_each_finished_episode():
     assert restored.finished == stats.finished and len(stats.finished) == 3  # the window keeps the last 3
     assert stats.finished[-1] == {"success": 0.0, "length": 2.0, "sparse": 8.0, "dense": 1.25,
                                   "ended_by_tilt": 0.0, "ended_by_keyframe_error": 0.0}
+
+
+def test_l2c2_on_a_share_of_the_minibatch():
+    """ppo.l2c2_fraction: the L2C2 terms see that share of the minibatch (its head, a random subset
+    since minibatches are slices of a permutation), less the samples with no next observation."""
+    from pipeline.rl.ppo import PPO
+
+    seen = []
+    for fraction in (1.0, 0.25):
+        cfg = TrainConfig.from_dict({"ppo": {"l2c2_fraction": fraction}})
+        policy, critic = Stage1Policy(3, 2, [8]), DoubleCritic(4, [8])
+        ppo = PPO(policy, critic, cfg.ppo, l2c2=True)
+        raw_mean = policy.raw_mean
+        policy.raw_mean = lambda obs: (seen.append((fraction, obs.shape[0])), raw_mean(obs))[1]
+        total, num_envs = 200, 10
+        idx = torch.randperm(total - num_envs)[:100]  # every sample here has a next one ...
+        has_next = torch.ones(total, dtype=torch.bool)
+        has_next[idx[:4]] = False  # ... but four
+        mean = torch.zeros(100, 2)
+        values = {"sparse": torch.zeros(100), "dense": torch.zeros(100)}
+        loss = ppo._l2c2(idx, torch.randn(total, 3), torch.randn(total, 4), has_next, num_envs, mean, values)
+        assert loss > 0
+    assert seen == [(1.0, 96), (0.25, 21)]
+    with pytest.raises(PipelineInputError, match="l2c2_fraction"):
+        TrainConfig.from_dict({"ppo": {"l2c2_fraction": 0.0}})
