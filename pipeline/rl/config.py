@@ -202,7 +202,7 @@ def cpu_profile() -> TrainConfig:
         iterations_stage2=150,
         save_interval=25,
         # L2C2 on a quarter of each minibatch: the update was half of stage 1's time on 2 cores, and the
-        # full L2C2 ~40 % of it. learn_cpu read 0.656 / 0.594 (seeds 0 / 1) with it, 0.578-0.594 without.
+        # full L2C2 ~40 % of it. learn_cpu read 0.594-0.656 over three seeds with it, 0.578-0.594 without.
         ppo=PPOConfig(num_envs=192, steps_per_iteration=24, epochs=5, minibatches=4, l2c2_fraction=0.25),
         # Initial std 0.5 (of normalised actions, i.e. ~0.2 rad on the legs): with std 1 the noise alone
         # makes about half the reference-start episodes fall before the policy has learnt anything.
