@@ -60,7 +60,8 @@ def env_seconds(num_worlds: int, steps: int, data, actions, compile_step: bool) 
 
 def measure(num_worlds: int, steps: int, data) -> dict:
     gen = torch.Generator(device="cuda").manual_seed(0)
-    actions = [0.3 * torch.randn(num_worlds, load_robot_config().num_joints, generator=gen, device="cuda") for _ in range(10)]
+    num_joints = load_robot_config().num_joints
+    actions = [0.3 * torch.randn(num_worlds, num_joints, generator=gen, device="cuda") for _ in range(10)]
     compiled_time, _ = env_seconds(num_worlds, steps, data, actions, compile_step=True)
     env_time, env = env_seconds(num_worlds, steps, data, actions, compile_step=False)
 

@@ -399,8 +399,7 @@ class TrackingEnv:
         self._apply_pushes()
         self.backend.step(self._delayed_control(target))
 
-        noise_std = cfg.observations.odometry_noise_std
-        odometry_noise = torch.randn(self.num_envs, 3, device=self.device) * noise_std if noise_std > 0 else None
+        odometry_noise = self._odometry_noise(self.num_envs)  # drawn outside `_observe`, which may be compiled
         b = self.backend
         s = self._score_fn(b.qpos, b.qvel, b.site_pos, b.site_quat, b.actuator_force, b.foot_contact, action)
         terminated, truncated, crossed = s["terminated"], s["truncated"], s["crossed"]
@@ -639,9 +638,8 @@ class TrackingEnv:
             gravity = projected_gravity(qpos[:, 3:7])
         step = sel(self.episode_step)
         fresh = quat_rotate_inverse(sel(self.odom_origin_quat), qpos[:, 0:3] - sel(self.odom_origin))
-        std = self.cfg.observations.odometry_noise_std
-        if noise is None and std > 0:
-            noise = std * torch.randn(fresh.shape, device=self.device)
+        if noise is None:
+            noise = self._odometry_noise(fresh.shape[0])
         if noise is not None:
             fresh = fresh + noise
         odom = torch.where((step % self.odom_every == 0)[:, None], fresh, sel(self.odometry))
@@ -654,6 +652,11 @@ class TrackingEnv:
         to_next = (self.kf_phase_padded[sel(self.next_kf)] - sel(self.phase)).clamp(max=1.0).to(torch.float32)
         privileged = torch.cat([lin_vel_b, self.ref_joint_pos[sel(self.frame)], qpos[:, 2:3], to_next[:, None]], dim=-1)
         return frame_obs, privileged, odom
+
+    def _odometry_noise(self, n: int) -> torch.Tensor | None:
+        """(n, 3) odometry noise, or None when it is off (then nothing is drawn from the RNG)."""
+        std = self.cfg.observations.odometry_noise_std
+        return std * torch.randn(n, 3, device=self.device) if std > 0 else None
 
     def _observe(self, gravity, noise):
         """Every world's next (obs_history, privileged, odometry), pure like `_score`."""

@@ -161,8 +161,9 @@ class PPO:
         ended = flat(rollout.terminated | rollout.truncated)
         has_next = ~ended & (torch.arange(total, device=ended.device) < total - num_envs)
 
-        stats = {k: 0.0 for k in ("policy_loss", "value_loss_sparse", "value_loss_dense", "entropy", "kl", "l2c2", "clip_frac",
-                                  "grad_norm_actor", "grad_norm_critic")}
+        stats = {k: torch.zeros((), dtype=torch.float64, device=adv.device)
+                 for k in ("policy_loss", "value_loss_sparse", "value_loss_dense", "entropy", "kl", "l2c2", "clip_frac",
+                           "grad_norm_actor", "grad_norm_critic")}
         updates = 0
         batch = total // cfg.minibatches
         for _ in range(cfg.epochs):
@@ -222,10 +223,10 @@ class PPO:
                              "l2c2": l2c2_loss, "clip_frac": ((ratio - 1).abs() > cfg.clip).float().mean(),
                              "grad_norm_actor": grad_actor, "grad_norm_critic": grad_critic}
                 for k, v in minibatch.items():
-                    stats[k] = stats[k] + v.detach().double()
+                    stats[k] += v.detach().double()
         self.policy.update_normalizers(rollout.actor_obs)
         self.critic.update_normalizers(rollout.critic_obs)
-        totals = torch.stack([torch.as_tensor(v, dtype=torch.float64, device=adv.device) for v in stats.values()]).tolist()
+        totals = torch.stack(list(stats.values())).tolist()
         out = {k: v / max(updates, 1) for k, v in zip(stats, totals)}
         out["learning_rate"] = self.learning_rate
         out["action_std"] = float(old_std.mean())

@@ -142,24 +142,20 @@ class CpuBackend(PhysicsBackend):
         self._state0[ids] = 0.0  # time, act, history... start afresh
         self._state0[ids, self._qpos_at:self._qpos_at + self.nq] = qpos
         self._state0[ids, self._qvel_at:self._qvel_at + self.nv] = qvel
-        if not forward:
-            self._np["qpos"][ids] = qpos
-            self._np["qvel"][ids] = qvel
-            self._push_to_device()
-            return
-        # Derived views for the new states: mj_forward per reset world on one scratch MjData.
-        # Only reset worlds loop here (a few per step); actuator forces use the last targets.
-        data = self._scratch[0]
-        sensors = np.empty((len(ids), self.model.nsensordata))
-        for row, world in enumerate(ids.tolist()):
-            model = self._models[world]
-            mujoco.mj_setState(model, data, self._state0[world], _STATE_SPEC)
-            data.ctrl[:] = self._ctrl[world, -1]
-            mujoco.mj_forward(model, data)
-            sensors[row] = data.sensordata
         self._np["qpos"][ids] = qpos
         self._np["qvel"][ids] = qvel
-        self._refresh_sensor_views(sensors, rows=ids)
+        if forward:
+            # Derived views for the new states: mj_forward per reset world on one scratch MjData.
+            # Only reset worlds loop here (a few per step); actuator forces use the last targets.
+            data = self._scratch[0]
+            sensors = np.empty((len(ids), self.model.nsensordata))
+            for row, world in enumerate(ids.tolist()):
+                model = self._models[world]
+                mujoco.mj_setState(model, data, self._state0[world], _STATE_SPEC)
+                data.ctrl[:] = self._ctrl[world, -1]
+                mujoco.mj_forward(model, data)
+                sensors[row] = data.sensordata
+            self._refresh_sensor_views(sensors, rows=ids)
         self._push_to_device()
 
     def get_state(self, world_ids=None) -> tuple[np.ndarray, np.ndarray]:
