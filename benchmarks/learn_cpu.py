@@ -11,11 +11,15 @@ the whole segment, no randomisation, 128 episodes), prints its success by ψ bin
 success: `success=<s> minutes=<m>`. The same episodes are also scored on the paper's easy and hard ranges,
 and keyframe by keyframe (the share that reached each one and the mean error there: where episodes are lost).
 
+2-core machines differ (one stepped the env 2.4 times slower than another), so 20 minutes buy different
+amounts of training there. `--iterations N` trains a fixed count instead, with no time limit and the
+curricula following the count: figures that compare across machines.
+
 With `--stage2-minutes M`, stage 2 (variant adamimic: phase and tracking adapters on the frozen stage-1
 policy, episodes from t = 0) then trains for M more minutes and is evaluated on the same episodes; the
 last line stays stage 1's, which is what the goal is about.
 
-    .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20] [--segment 1.5] [--envs 192] [--out DIR]
+    .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--stage2-minutes M] [--set env.KEY=VALUE | train.KEY=VALUE ...]
 """
 
@@ -149,6 +153,8 @@ def set_dotted(tree: dict, item: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=20.0)
+    parser.add_argument("--iterations", type=int, default=0,
+                        help="train this many iterations, with no time limit, instead of --minutes")
     parser.add_argument("--segment", type=float, default=1.5, help="seconds of the clip to track")
     parser.add_argument("--envs", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None)
@@ -164,6 +170,8 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
+    if args.iterations < 0:
+        parser.error("--iterations: must be >= 0 (0: train for --minutes)")
 
     import torch
 
@@ -177,9 +185,10 @@ def main() -> None:
     print(f"[learn_cpu] {args.motion} frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
-    # Sized by time: 0 iterations train until the limit, and the curricula follow the clock.
-    overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": 0,
-                                      "time_limit_stage1_s": args.minutes * 60.0, "save_interval": 50}}
+    # Sized by time (0 iterations train until the limit, and the curricula follow the clock) or by count.
+    overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": args.iterations,
+                                      "time_limit_stage1_s": 0.0 if args.iterations else args.minutes * 60.0,
+                                      "save_interval": 50}}
     if args.envs:
         overrides["train"]["ppo"] = {"num_envs": args.envs}
     for item in args.set:
