@@ -20,7 +20,7 @@ policy, episodes from t = 0) then trains for M more minutes and is evaluated on 
 last line stays stage 1's, which is what the goal is about.
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
-        [--psi LOW HIGH] [--keyframe-spacing S] [--stage2-minutes M] [--set env.KEY=VALUE | train.KEY=VALUE ...]
+        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M] [--set env.KEY=VALUE | train.KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ sys.path.insert(0, str(ROOT))
 
 
 def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None,
-               keyframe_spacing: float | None = None, motion_name: str = "far_jump"):
+               keyframe_spacing: float | None = None, motion_name: str = "far_jump", flat_ground: bool = False):
     from pipeline.human.importers import load_human_motion
-    from pipeline.keyframes.config import load_tasks, load_yaml_strict
+    from pipeline.keyframes.config import TerrainConfig, load_tasks, load_yaml_strict
     from pipeline.keyframes.edit import build_tracking_data
     from pipeline.keyframes.select import select_keyframes
     from pipeline.retarget import RetargetConfig, retarget
@@ -54,6 +54,8 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
     if keyframe_spacing is not None:
         spacing = dataclasses.replace(task.keyframes, spacing=keyframe_spacing, min_gap=min(task.keyframes.min_gap, keyframe_spacing / 2))
         task = dataclasses.replace(task, keyframes=spacing)
+    if flat_ground:
+        task = dataclasses.replace(task, terrain=TerrainConfig(kind="flat"))
     human = load_human_motion(task.input_path(ROOT))
     motion, _ = retarget(human, RetargetConfig(), fps_out=50, progress=False)
     full = select_keyframes(motion, task)
@@ -165,6 +167,9 @@ def main() -> None:
                         help="train on this ψ range instead of the paper task's train range")
     parser.add_argument("--keyframe-spacing", type=float, default=None,
                         help="seconds between uniform keyframes (default: the task's, 0.3)")
+    parser.add_argument("--flat-ground", action="store_true",
+                        help="train and evaluate on flat ground instead of the task's terrain (a probe: a short "
+                             "landing then lands instead of falling into the far jump's gap)")
     parser.add_argument("--stage2-minutes", type=float, default=0.0,
                         help="then train stage 2 on the stage-1 policy for this long and evaluate it too")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -181,7 +186,7 @@ def main() -> None:
 
     t0 = time.time()
     data, keyframes, (start, stop, total) = build_data(args.segment, psi_range=args.psi, keyframe_spacing=args.keyframe_spacing,
-                                                       motion_name=args.motion)
+                                                       motion_name=args.motion, flat_ground=args.flat_ground)
     print(f"[learn_cpu] {args.motion} frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
