@@ -36,26 +36,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None,
-               keyframe_spacing: float | None = None, motion_name: str = "far_jump", flat_ground: bool = False):
-    from pipeline.human.importers import load_human_motion
-    from pipeline.keyframes.config import TerrainConfig, load_tasks, load_yaml_strict
-    from pipeline.keyframes.edit import build_tracking_data
-    from pipeline.keyframes.select import select_keyframes
-    from pipeline.retarget import RetargetConfig, retarget
+def paper_task(motion_name: str):
+    """The paper task named `motion_name` (pipeline/keyframes/paper_tasks.yaml), or exit naming the choices."""
+    from pipeline.keyframes.config import load_tasks, load_yaml_strict
 
     tasks = load_tasks(load_yaml_strict(ROOT / "pipeline" / "keyframes" / "paper_tasks.yaml")["tasks"])
     if motion_name not in tasks:
         raise SystemExit(f"--motion {motion_name!r}: not a paper task (pipeline/keyframes/paper_tasks.yaml: "
                          f"{', '.join(tasks)})")
-    task = tasks[motion_name]
-    if psi_range is not None:
-        task = dataclasses.replace(task, psi=dataclasses.replace(task.psi, train=(tuple(psi_range),)))
-    if keyframe_spacing is not None:
-        spacing = dataclasses.replace(task.keyframes, spacing=keyframe_spacing, min_gap=min(task.keyframes.min_gap, keyframe_spacing / 2))
-        task = dataclasses.replace(task, keyframes=spacing)
-    if flat_ground:
-        task = dataclasses.replace(task, terrain=TerrainConfig(kind="flat"))
+    return tasks[motion_name]
+
+
+def jump_segment(task, segment_s: float):
+    """The task's clip retargeted to the G1 at 50 fps, cut to `segment_s` from 0.5 s before its first
+    take-off (or from the start when it has no flight). Returns (segment, (start, stop, frames))."""
+    from pipeline.human.importers import load_human_motion
+    from pipeline.keyframes.select import select_keyframes
+    from pipeline.retarget import RetargetConfig, retarget
+
     human = load_human_motion(task.input_path(ROOT))
     motion, _ = retarget(human, RetargetConfig(), fps_out=50, progress=False)
     full = select_keyframes(motion, task)
@@ -65,10 +63,27 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
     else:
         start = 0
     stop = min(motion.num_frames, start + int(round(segment_s * motion.fps)) + 1)
-    segment = motion.slice(start, stop)
+    return motion.slice(start, stop), (start, stop, motion.num_frames)
+
+
+def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None,
+               keyframe_spacing: float | None = None, motion_name: str = "far_jump", flat_ground: bool = False):
+    from pipeline.keyframes.config import TerrainConfig
+    from pipeline.keyframes.edit import build_tracking_data
+    from pipeline.keyframes.select import select_keyframes
+
+    task = paper_task(motion_name)
+    if psi_range is not None:
+        task = dataclasses.replace(task, psi=dataclasses.replace(task.psi, train=(tuple(psi_range),)))
+    if keyframe_spacing is not None:
+        spacing = dataclasses.replace(task.keyframes, spacing=keyframe_spacing, min_gap=min(task.keyframes.min_gap, keyframe_spacing / 2))
+        task = dataclasses.replace(task, keyframes=spacing)
+    if flat_ground:
+        task = dataclasses.replace(task, terrain=TerrainConfig(kind="flat"))
+    segment, span = jump_segment(task, segment_s)
     keyframes = select_keyframes(segment, task)
     data = build_tracking_data(segment, task, keyframes, mode="edit", num_samples=num_samples, seed=0)
-    return data, keyframes, (start, stop, motion.num_frames)
+    return data, keyframes, span
 
 
 def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 128) -> tuple[dict, list]:
