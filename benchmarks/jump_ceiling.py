@@ -11,12 +11,14 @@ The jump is how far the feet travel over the first flight of ≥ 0.1 s: the rear
 minus the front ankle at take-off, which is what a gap has to be narrower than. The task edits ψ as
 an offset from the clip's ψ_raw (the landing and all after it move by ψ − ψ_raw), so the script turns
 each jump into the ψ it reaches: ψ_raw + (its feet travel − the G1 reference's). It also prints the
-pelvis's travel over the flight (`retarget/core.py: jump_summary`, the sample's ψ_raw). A jump only counts as landable if at touch-down the trunk's tilt
-is at most 0.6 (the norm of gravity's xy in the pelvis frame; the G1 reference lands at about 0.5), the
-pitch rate at most 3 rad/s, the pelvis stayed above 0.5 m in the air, and the whole body's capture point
-(x + v/√(g/z) of its centre of mass) lies no further outside the soles (rear heel to front toe) than the
-G1 reference's own does at its touch-down: a landing no harder to bring to rest than the clip's. A search is
-penalised past these.
+pelvis's travel over the flight (`retarget/core.py: jump_summary`, the sample's ψ_raw).
+
+A jump only counts as landable if at touch-down the trunk's tilt is at most 0.6 (the norm of gravity's xy
+in the pelvis frame; the far jump's G1 reference lands at 0.32, the sample's at 0.47), the pitch rate at
+most 3 rad/s, the pelvis stayed above 0.5 m in the air, and the whole body's capture point (x + v/√(g/z)
+of its centre of mass) lies no further outside the soles (rear heel to front toe) than the G1
+reference's own does at its touch-down: a landing no harder to bring to rest than the clip's. A search
+is penalised past these.
 Nothing after the touch-down is simulated: standing up from the landing is the policy's job.
 
 Two searches: one with any timing, and one that must touch down by the reference's own landing time
