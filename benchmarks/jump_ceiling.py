@@ -46,6 +46,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from pipeline.common import quat  # noqa: E402
+
 # The channels the search moves, each the same offset on both sides of the body.
 CHANNELS = (("left_hip_pitch_joint", "right_hip_pitch_joint"), ("left_knee_joint", "right_knee_joint"),
             ("left_ankle_pitch_joint", "right_ankle_pitch_joint"),
@@ -54,6 +56,7 @@ KNOTS = 12
 CONTROL_STEPS = 70          # 1.4 s at 50 Hz: the push, the longest flights found, and the touch-down
 MIN_FLIGHT_S = 0.1
 MAX_TILT, MAX_PITCH_RATE, MIN_FLIGHT_PELVIS_M = 0.6, 3.0, 0.5
+DOWN = np.array([0.0, 0.0, -1.0])
 SOLE_X = (-0.05, 0.13)      # heel and toe about the ankle (the G1's sole capsules, robots/g1/vendor/xmls)
 
 
@@ -70,8 +73,11 @@ class Jump:
     capture_outside_m: float  # how far the capture point lies outside the soles at touch-down (0: inside)
 
     def penalty(self, land_by_s: float, capture_allowance_m: float) -> float:
-        return (2.0 * max(0.0, self.tilt - MAX_TILT) + 0.2 * max(0.0, abs(self.pitch_rate) - MAX_PITCH_RATE)
-                + 5.0 * max(0.0, MIN_FLIGHT_PELVIS_M - self.lowest_pelvis_m) + 5.0 * max(0.0, self.capture_outside_m - capture_allowance_m) + 10.0 * max(0.0, self.landing_s - land_by_s))
+        return (2.0 * max(0.0, self.tilt - MAX_TILT)
+                + 0.2 * max(0.0, abs(self.pitch_rate) - MAX_PITCH_RATE)
+                + 5.0 * max(0.0, MIN_FLIGHT_PELVIS_M - self.lowest_pelvis_m)
+                + 5.0 * max(0.0, self.capture_outside_m - capture_allowance_m)
+                + 10.0 * max(0.0, self.landing_s - land_by_s))
 
     def landable(self, land_by_s: float, capture_allowance_m: float) -> bool:
         return self.penalty(land_by_s, capture_allowance_m) == 0.0
@@ -97,15 +103,15 @@ class OpenLoopJumps:
         self.layout = sensor_layout(self.model)
         self.substeps = robot.decimation
         self.dt = self.model.opt.timestep
-        segment = segment.reorder_joints(robot.joint_names)
+        self.segment = segment = segment.reorder_joints(robot.joint_names)  # qpos in the model's joint order
         targets = zero_action_targets(segment, "feedforward", robot, self.model)
         # A control step aims at the frame it ends on (as the env does); past the segment, its last frame.
         pad = max(0, CONTROL_STEPS + 1 - len(targets))
         self.targets = np.concatenate([targets, np.repeat(targets[-1:], pad, axis=0)])[1:CONTROL_STEPS + 1]
         self.channel_joints = [[robot.joint_names.index(j) for j in pair] for pair in CHANNELS]
         self.knot_steps = np.linspace(0, CONTROL_STEPS - 1, KNOTS)
-        names = list(robot.tracked_body_names)
-        self.ankles = [names.index("left_ankle"), names.index("right_ankle")]
+        # Motion bodies and the model's tracked sites are both in robot.tracked_body_names order.
+        self.ankles = [segment.body_index("left_ankle"), segment.body_index("right_ankle")]
 
         data = mujoco.MjData(self.model)
         data.qpos[:], data.qvel[:] = segment.qpos()[0], segment.qvel()[0]
@@ -137,14 +143,13 @@ class OpenLoopJumps:
         sites = sensors[:, :, slice(*self.layout.site_pos)].reshape(len(offsets), contact.shape[1], -1, 3)
         return [self._measure(contact[p], qpos[p], qvel[p], sites[p], state[p]) for p in range(len(offsets))]
 
-    def reference_capture_outside(self, segment, frame: int) -> float:
+    def reference_capture_outside(self, frame: int) -> float:
         """`capture_outside` of the reference itself at `frame` (its touch-down)."""
         d = self.scratch
-        d.qpos[:], d.qvel[:] = segment.qpos()[frame], segment.qvel()[frame]
+        d.qpos[:], d.qvel[:] = self.segment.qpos()[frame], self.segment.qvel()[frame]
         row = np.empty_like(self.initial_state)
         self.mujoco.mj_getState(self.model, d, row, self.state_spec)
-        names = list(segment.body_names)
-        return self.capture_outside(row, segment.body_pos[frame, [names.index("left_ankle"), names.index("right_ankle")], 0])
+        return self.capture_outside(row, self.segment.body_pos[frame, self.ankles, 0])
 
     def capture_outside(self, state_row: np.ndarray, ankle_x: np.ndarray) -> float:
         """How far (m) the whole-body capture point x + v/√(g/z) lies outside [rear heel, front toe]:
@@ -166,8 +171,7 @@ class OpenLoopJumps:
             b = a + touch[0]
             if (b - a) * self.dt < MIN_FLIGHT_S:
                 continue
-            w, x, y, z = qpos[b, 3:7]
-            gravity_xy = np.hypot(2 * (x * z - w * y), 2 * (y * z + w * x))
+            gravity_xy = np.linalg.norm(quat.inverse_rotate(qpos[b, 3:7], DOWN)[:2])
             return Jump(feet_m=float(sites[b, self.ankles, 0].min() - sites[a - 1, self.ankles, 0].max()),
                         pelvis_m=float(np.linalg.norm(qpos[b, :2] - qpos[a - 1, :2])),
                         takeoff_s=float(a * self.dt), landing_s=float(b * self.dt), tilt=float(gravity_xy),
@@ -224,13 +228,12 @@ def main() -> None:
         raise SystemExit(f"--motion {args.motion}: no flight in the clip")
     takeoff, landing = flights[0]
     clip_landing_s = landing / segment.fps
-    ankles = [segment.body_index("left_ankle"), segment.body_index("right_ankle")]
-    clip_feet_m = float(segment.body_pos[landing, ankles, 0].min() - segment.body_pos[takeoff, ankles, 0].max())
-    psi = lambda feet_m: task.psi.raw + feet_m - clip_feet_m  # noqa: E731
     robot = load_robot_config()
-    segment = segment.reorder_joints(robot.joint_names)
     jumps = OpenLoopJumps(segment, robot)
-    allowance = jumps.reference_capture_outside(segment, landing)
+    ankle_x = segment.body_pos[:, jumps.ankles, 0]
+    clip_feet_m = float(ankle_x[landing].min() - ankle_x[takeoff].max())
+    psi = lambda feet_m: task.psi.raw + feet_m - clip_feet_m  # noqa: E731
+    allowance = jumps.reference_capture_outside(landing)
     print(f"{args.motion}: the G1 reference takes off at {takeoff / segment.fps:.2f} s and lands at "
           f"{clip_landing_s:.2f} s of the segment, its feet {clip_feet_m:.2f} m further: ψ_raw {task.psi.raw:.2f} m "
           f"(the task's ψ ranges: easy {task.psi.easy}, hard {task.psi.hard}); at its touch-down the capture point is "
