@@ -75,11 +75,13 @@ def test_load_rejects_another_number_of_worlds(data):  # noqa: F811
         TrackingEnv(noisy_cfg(), data, num_envs=3).load_state_dict(state)
 
 
-def test_trainer_resume_on_the_tracking_env_is_bit_for_bit(tmp_path, data):  # noqa: F811
+@pytest.mark.parametrize("noise_correlation", [0.0, 0.9])
+def test_trainer_resume_on_the_tracking_env_is_bit_for_bit(tmp_path, data, noise_correlation):  # noqa: F811
     from pipeline.rl.trainer import Trainer
     from test_rl import META, make_stage1, small_cfg
 
-    cfg = small_cfg(save_interval=1, ppo={"num_envs": 8, "steps_per_iteration": 8, "epochs": 1, "minibatches": 2})
+    cfg = small_cfg(save_interval=1, ppo={"num_envs": 8, "steps_per_iteration": 8, "epochs": 1, "minibatches": 2,
+                                          "noise_correlation": noise_correlation})
 
     def trainer(run_dir, seed):
         torch.manual_seed(seed)

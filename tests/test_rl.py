@@ -237,8 +237,10 @@ def _trainer(run_dir, cfg, seed):
     return Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=META, l2c2=True, tensorboard=False, progress=False)
 
 
-def test_resume_reproduces_the_next_iteration_bit_for_bit(tmp_path):
-    cfg = small_cfg(save_interval=2, ppo={"num_envs": 32, "steps_per_iteration": 8, "epochs": 2, "minibatches": 2})
+@pytest.mark.parametrize("noise_correlation", [0.0, 0.9])
+def test_resume_reproduces_the_next_iteration_bit_for_bit(tmp_path, noise_correlation):
+    cfg = small_cfg(save_interval=2, ppo={"num_envs": 32, "steps_per_iteration": 8, "epochs": 2, "minibatches": 2,
+                                          "noise_correlation": noise_correlation})
     straight = _trainer(tmp_path / "a", cfg, seed=0)
     straight.run(3)
     interrupted = _trainer(tmp_path / "b", cfg, seed=0)

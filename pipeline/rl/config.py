@@ -104,6 +104,9 @@ class PPOConfig:
     # slice of a random permutation). Their extra forward and backward passes are ~40 % of a stage-1
     # update on the CPU; a subset gives the same expected penalty for less.
     l2c2_fraction: float = 1.0
+    # Exploration noise per world as an AR(1) process with this coefficient per step (pipeline/rl/exploration.py);
+    # each step's noise stays N(0, 1), so PPO's log-probabilities are unchanged. 0: white noise, the paper's.
+    noise_correlation: float = 0.0
 
 
 @dataclass
@@ -163,6 +166,7 @@ def _validate(cfg: TrainConfig, where: str) -> None:
         (p.steps_per_iteration > 0, "ppo.steps_per_iteration", "must be > 0"),
         (p.epochs > 0, "ppo.epochs", "must be > 0"),
         (0.0 < p.l2c2_fraction <= 1.0, "ppo.l2c2_fraction", "must be in (0, 1]"),
+        (0.0 <= p.noise_correlation < 1.0, "ppo.noise_correlation", "must be in [0, 1) (0: white noise)"),
         (0 < p.minibatches <= p.num_envs * p.steps_per_iteration, "ppo.minibatches", "must be in [1, envs*steps]"),
         (0.0 < p.gamma_sparse <= 1.0, "ppo.gamma_sparse", "must be in (0, 1]"),
         (0.0 < p.gamma_dense <= 1.0, "ppo.gamma_dense", "must be in (0, 1]"),

@@ -98,9 +98,10 @@ class Stage1Policy(nn.Module):
         mean = self.raw_mean(obs)
         return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean))
 
-    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def sample(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(raw, log_prob). `noise`: a standard-normal ε to use (exploration.CorrelatedNoise) instead of a fresh draw."""
         dist = self.distribution(obs)
-        raw = dist.sample()
+        raw = dist.sample() if noise is None else dist.mean + dist.stddev * noise
         return raw, dist.log_prob(raw).sum(-1)
 
     def log_prob_entropy(self, obs: torch.Tensor, raw: torch.Tensor):

@@ -106,11 +106,13 @@ class PPO:
 
     # -- acting -----------------------------------------------------------------------------
     @torch.no_grad()
-    def act(self, actor_obs: torch.Tensor, critic_obs: torch.Tensor) -> dict[str, torch.Tensor]:
+    def act(self, actor_obs: torch.Tensor, critic_obs: torch.Tensor,
+            noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Samples an action; returns what the rollout stores and what the env receives.
         The observation normalisers stay fixed during a rollout and its update (they move after
-        the update, in `update`), so the stored means/log-probs match what the update recomputes."""
-        raw, log_prob = self.policy.sample(actor_obs)
+        the update, in `update`), so the stored means/log-probs match what the update recomputes.
+        `noise`: the standard-normal ε to explore with (time-correlated, see exploration.py); None draws it."""
+        raw, log_prob = self.policy.sample(actor_obs, noise)
         _, _, mean, std = self.policy.log_prob_entropy(actor_obs, raw)
         action, phase_offset = self.policy.to_env(actor_obs, raw)
         v_sparse, v_dense = self.critic(critic_obs)

@@ -71,13 +71,16 @@ class Stage2Policy(nn.Module):
         phase_mean, track_mean = self._means(obs, None)
         return torch.cat([phase_mean.unsqueeze(-1), track_mean], -1)
 
-    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Sequential sample: u_phase, then a^Δ given it. Returns (raw, log_prob)."""
+    def sample(self, obs: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Sequential sample: u_phase, then a^Δ given it. Returns (raw, log_prob). `noise`: standard-normal
+        ε (N, raw_dim) to use instead of fresh draws."""
         std = self.log_std.exp()
         phase_mean, _ = self._means(obs, None)
-        u_phase = phase_mean + std[0] * torch.randn_like(phase_mean)
+        phase_noise = torch.randn_like(phase_mean) if noise is None else noise[:, 0]
+        u_phase = phase_mean + std[0] * phase_noise
         _, track_mean = self._means(obs, u_phase)
-        a_delta = track_mean + std[1:] * torch.randn_like(track_mean)
+        track_noise = torch.randn_like(track_mean) if noise is None else noise[:, 1:]
+        a_delta = track_mean + std[1:] * track_noise
         raw = torch.cat([u_phase.unsqueeze(-1), a_delta], -1)
         return raw, self.log_prob_entropy(obs, raw)[0]
 

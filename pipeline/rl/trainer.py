@@ -34,6 +34,7 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.rl.amp import AMPDiscriminator, JointWindow, reference_windows
 from pipeline.rl.checkpoint import CheckpointManager, check_compatible, load_policy, read_meta, rng_state, save_policy, set_rng_state
 from pipeline.rl.config import TrainConfig, Variant
+from pipeline.rl.exploration import CorrelatedNoise
 from pipeline.rl.networks import DoubleCritic, Stage1Policy
 from pipeline.rl.ppo import GROUPS, PPO, Rollout
 from pipeline.rl.stage2 import Stage2Policy
@@ -145,6 +146,10 @@ class Trainer:
         self.use_phase_offset = use_phase_offset
         self.checkpoints = CheckpointManager(self.run_dir, cfg.keep_checkpoints)
         self.stats = EpisodeStats(env.num_envs, self.device)
+        # White noise (the paper's) is drawn inside policy.sample; correlated noise needs a state per world.
+        self.noise = None
+        if cfg.ppo.noise_correlation > 0:
+            self.noise = CorrelatedNoise(env.num_envs, policy.raw_dim, cfg.ppo.noise_correlation, self.device)
         self.history: list[dict] = []
         self.tensorboard, self.progress = tensorboard, progress
         self.joint_window = None
@@ -176,10 +181,12 @@ class Trainer:
         ro = Rollout.allocate(steps, n, obs["actor"].shape[-1], obs["critic"].shape[-1], raw_dim, self.device)
         amp_windows = []
         for t in range(steps):
-            rec = self.ppo.act(obs["actor"], obs["critic"])
+            rec = self.ppo.act(obs["actor"], obs["critic"], self.noise.next() if self.noise is not None else None)
             offset = rec["phase_offset"] if self.use_phase_offset else None
             next_obs, rewards, terminated, truncated, info = self.env.step(rec["action"], offset)
             terminated, truncated = terminated.bool(), truncated.bool()
+            if self.noise is not None:
+                self.noise.restart(terminated | truncated)
             self.stats.step(rewards, terminated, truncated, info)
             if self.amp is not None:
                 self.joint_window.push(self._joint_pos(info))
@@ -212,6 +219,8 @@ class Trainer:
             self.stats.reset()
             if self.joint_window is not None:
                 self.joint_window.filled.zero_()
+            if self.noise is not None:
+                self.noise.restart()
             return self.env.reset()
         return obs
 
@@ -319,6 +328,8 @@ class Trainer:
         if self._env_has_state():
             state["env"] = self.env.state_dict()
             state["obs"] = {k: v.clone() for k, v in obs.items()}
+        if self.noise is not None:
+            state["noise"] = self.noise.state_dict()
         if self.amp is not None:
             state["amp"] = {"net": self.amp.state_dict(), "optimizer": self.amp.optimizer.state_dict(),
                             "window": self.joint_window.frames.clone(), "filled": self.joint_window.filled.clone()}
@@ -347,6 +358,8 @@ class Trainer:
         if "env" in state and self._env_has_state():
             self.env.load_state_dict(state["env"])
             obs = state["obs"]
+        if self.noise is not None and "noise" in state:
+            self.noise.load_state_dict(state["noise"])
         if self.amp is not None and "amp" in state:
             self.amp.load_state_dict(state["amp"]["net"])
             self.amp.optimizer.load_state_dict(state["amp"]["optimizer"])
