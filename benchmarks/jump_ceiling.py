@@ -21,15 +21,20 @@ reference's own does at its touch-down: a landing no harder to bring to rest tha
 is penalised past these.
 Nothing after the touch-down is simulated: standing up from the landing is the policy's job.
 
-Two searches: one with any timing, and one that must touch down by the reference's own landing time
+Three searches: one with any timing, and one that must touch down by the reference's own landing time
 + 0.04 s. Stage 1 tracks the edited landing keyframe at the reference's time, so the second one is
 what a stage-1 policy can reach; stage 2's phase adapter may slow the reference down, as the first one does.
+The third is the second within the training env's fall checks too (envs/config.py: TerminationConfig,
+relative to the reference), from the start to 0.1 s after the touch-down: the pelvis no lower than
+min(0.4 m, the reference's − 0.25 m) and the tilt within 0.8 of the reference's. A jump that breaks them
+ends a training or evaluation episode before it lands, however well it would have landed.
 A search finds a lower bound of what the robot can do, not its maximum.
 
     .venv/bin/python benchmarks/jump_ceiling.py [--motion far_jump] [--iterations 40] [--population 256] [--seed 0]
 
-Ends with `ceiling_psi_m=<any timing> ceiling_psi_clip_timing_m=<by the reference's landing> psi_raw_m=<the clip's>
-zero_action_psi_m=<...>`: the ψ of the furthest landable jumps found (nan if the best broke a landing limit).
+Ends with `ceiling_psi_m=<any timing> ceiling_psi_clip_timing_m=<by the reference's landing>
+ceiling_psi_fall_checks_m=<also within the env's fall checks> psi_raw_m=<the clip's> zero_action_psi_m=<...>`:
+the ψ of the furthest landable jumps found (nan if the best broke a landing limit).
 """
 
 from __future__ import annotations
@@ -71,22 +76,25 @@ class Jump:
     lowest_pelvis_m: float  # in the air
     apex_pelvis_m: float
     capture_outside_m: float  # how far the capture point lies outside the soles at touch-down (0: inside)
+    fall_check_excess: float  # the training env's fall checks, worst excess until 0.1 s after touch-down (0: passed)
 
-    def penalty(self, land_by_s: float, capture_allowance_m: float) -> float:
+    def penalty(self, land_by_s: float, capture_allowance_m: float, fall_checks: bool = False) -> float:
         return (2.0 * max(0.0, self.tilt - MAX_TILT)
+                + (5.0 * self.fall_check_excess if fall_checks else 0.0)
                 + 0.2 * max(0.0, abs(self.pitch_rate) - MAX_PITCH_RATE)
                 + 5.0 * max(0.0, MIN_FLIGHT_PELVIS_M - self.lowest_pelvis_m)
                 + 5.0 * max(0.0, self.capture_outside_m - capture_allowance_m)
                 + 10.0 * max(0.0, self.landing_s - land_by_s))
 
-    def landable(self, land_by_s: float, capture_allowance_m: float) -> bool:
-        return self.penalty(land_by_s, capture_allowance_m) == 0.0
+    def landable(self, land_by_s: float, capture_allowance_m: float, fall_checks: bool = False) -> bool:
+        return self.penalty(land_by_s, capture_allowance_m, fall_checks) == 0.0
 
     def __str__(self) -> str:
         return (f"feet {self.feet_m:.2f} m (pelvis {self.pelvis_m:.2f} m), take-off {self.takeoff_s:.2f} s, "
                 f"touch-down {self.landing_s:.2f} s, tilt {self.tilt:.2f}, pitch rate {self.pitch_rate:+.1f} rad/s, "
                 f"pelvis {self.lowest_pelvis_m:.2f}-{self.apex_pelvis_m:.2f} m in the air, "
-                f"capture point {self.capture_outside_m * 100:.0f} cm outside the soles")
+                f"capture point {self.capture_outside_m * 100:.0f} cm outside the soles, "
+                f"{'passes' if self.fall_check_excess == 0 else f'fails ({self.fall_check_excess:.2f})'} the env's fall checks")
 
 
 class OpenLoopJumps:
@@ -120,7 +128,30 @@ class OpenLoopJumps:
         self.initial_state = np.empty(mujoco.mj_stateSize(self.model, self.state_spec))
         mujoco.mj_getState(self.model, data, self.initial_state, self.state_spec)
         self.thread_data = [mujoco.MjData(self.model) for _ in range(2)]
+        self._fall_check_tables(robot)
         self.scratch = mujoco.MjData(self.model)
+
+    def _fall_check_tables(self, robot) -> None:
+        """What the training env's fall checks (envs/config.py: TerminationConfig, relative to the reference)
+        allow at each physics step: the lowest pelvis and the reference's tilt, at the frame being tracked."""
+        from pipeline.envs.config import TerminationConfig
+
+        checks = TerminationConfig()
+        if not checks.relative_to_reference:
+            raise SystemExit("jump_ceiling: the env's fall checks are not relative to the reference any more; update the script")
+        ref = self.segment.qpos()
+        frames = np.minimum(np.arange(1, CONTROL_STEPS * self.substeps + 1) // self.substeps, len(ref) - 1)
+        self.min_pelvis_z = np.minimum(checks.min_base_height, ref[frames, 2] - checks.base_height_margin)
+        self.ref_tilt_xy = np.stack([quat.inverse_rotate(q, DOWN)[:2] for q in ref[frames, 3:7]])
+        self.max_tilt_error = checks.max_tilt
+
+    def fall_check_excess(self, qpos: np.ndarray, until: int) -> float:
+        """Worst excess over the env's fall checks in physics steps [0, until): metres of pelvis below its
+        lowest allowed height plus the tilt error past its limit (0: an env episode would not have ended)."""
+        low = np.maximum(0.0, self.min_pelvis_z[:until] - qpos[:until, 2]).max()
+        tilt = np.stack([quat.inverse_rotate(q, DOWN)[:2] for q in qpos[:until, 3:7]])
+        over = np.maximum(0.0, np.linalg.norm(tilt - self.ref_tilt_xy[:until], axis=-1) - self.max_tilt_error).max()
+        return float(low + over)
 
     def controls(self, offsets: np.ndarray) -> np.ndarray:
         """(P, channels, knots) offsets (rad) -> (P, physics steps, nu) actuator targets."""
@@ -177,13 +208,15 @@ class OpenLoopJumps:
                         takeoff_s=float(a * self.dt), landing_s=float(b * self.dt), tilt=float(gravity_xy),
                         pitch_rate=float(qvel[b, 4]), lowest_pelvis_m=float(qpos[a:b, 2].min()),
                         apex_pelvis_m=float(qpos[a:b, 2].max()),
-                        capture_outside_m=self.capture_outside(state[b], sites[b, self.ankles, 0]))
+                        capture_outside_m=self.capture_outside(state[b], sites[b, self.ankles, 0]),
+                        fall_check_excess=self.fall_check_excess(qpos, b + int(0.1 / self.dt)))
         return None
 
 
 def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowance_m: float, iterations: int,
-                         population: int, rng: np.random.Generator) -> tuple[np.ndarray, Jump]:
-    """Maximises the feet's travel − penalty over the offsets; returns the best offsets and their jump."""
+                         population: int, rng: np.random.Generator, fall_checks: bool = False) -> tuple[np.ndarray, Jump]:
+    """Maximises the feet's travel − penalty over the offsets; returns the best offsets and their jump.
+    `fall_checks`: also penalise breaking the training env's fall checks."""
     shape = (len(CHANNELS), KNOTS)
     mean, std = np.zeros(shape), np.full(shape, 0.4)
     elites = max(2, population // 10)
@@ -193,7 +226,7 @@ def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowan
         offsets = mean + std * rng.standard_normal((population, *shape))
         offsets[0] = best_offsets  # keep the best so far in every batch
         found = jumps.jumps(offsets)
-        scores = np.array([j.feet_m - j.penalty(land_by_s, capture_allowance_m) if j else -1.0 for j in found])
+        scores = np.array([j.feet_m - j.penalty(land_by_s, capture_allowance_m, fall_checks) if j else -1.0 for j in found])
         order = np.argsort(-scores)
         if scores[order[0]] > best_score:
             best_score, best_offsets, best_jump = scores[order[0]], offsets[order[0]].copy(), found[order[0]]
@@ -244,19 +277,24 @@ def main() -> None:
     print(f"zero action (the reference + feedforward, open loop): ψ {zero_psi:.2f} m, {zero if zero else 'no flight'}")
     rng = np.random.default_rng(args.seed)
     reached = {}
-    for name, land_by_s in (("any timing", np.inf), (f"touch-down by {clip_landing_s + 0.04:.2f} s", clip_landing_s + 0.04)):
+    clip_timed = f"touch-down by {clip_landing_s + 0.04:.2f} s"
+    searches = (("any timing", np.inf, False), (clip_timed, clip_landing_s + 0.04, False),
+                (f"{clip_timed}, within the training env's fall checks", clip_landing_s + 0.04, True))
+    for name, land_by_s, fall_checks in searches:
         print(f"search, {name}: {args.iterations} iterations of {args.population} rollouts")
-        offsets, jump = cross_entropy_search(jumps, land_by_s, allowance, args.iterations, args.population, rng)
-        landable = "landable" if jump.landable(land_by_s, allowance) else "NOT within the landing limits"
+        offsets, jump = cross_entropy_search(jumps, land_by_s, allowance, args.iterations, args.population, rng,
+                                             fall_checks)
+        ok = jump.landable(land_by_s, allowance, fall_checks)
+        landable = "landable" if ok else "NOT within the landing limits"
         print(f"  best: ψ {psi(jump.feet_m):.2f} m, {jump} ({landable})")
         # What a policy would have to output for it: the offsets in its action units (rad / action scale).
         units = [np.abs(offsets[c]).max() / robot.action_scale[jumps.channel_joints[c][0]] for c in range(len(CHANNELS))]
         print("  largest offset, in policy action units: " + ", ".join(
             f"{pair[0].removeprefix('left_').removesuffix('_joint')} {u:.1f}" for pair, u in zip(CHANNELS, units)))
-        reached[name] = psi(jump.feet_m) if jump.landable(land_by_s, allowance) else float("nan")
-    free, timed = reached.values()
-    print(f"ceiling_psi_m={free:.2f} ceiling_psi_clip_timing_m={timed:.2f} psi_raw_m={task.psi.raw:.2f} "
-          f"zero_action_psi_m={zero_psi:.2f}")
+        reached[name] = psi(jump.feet_m) if ok else float("nan")
+    free, timed, checked = reached.values()
+    print(f"ceiling_psi_m={free:.2f} ceiling_psi_clip_timing_m={timed:.2f} ceiling_psi_fall_checks_m={checked:.2f} "
+          f"psi_raw_m={task.psi.raw:.2f} zero_action_psi_m={zero_psi:.2f}")
 
 
 if __name__ == "__main__":
