@@ -128,10 +128,10 @@ class OpenLoopJumps:
         self.initial_state = np.empty(mujoco.mj_stateSize(self.model, self.state_spec))
         mujoco.mj_getState(self.model, data, self.initial_state, self.state_spec)
         self.thread_data = [mujoco.MjData(self.model) for _ in range(2)]
-        self._fall_check_tables(robot)
+        self._fall_check_tables()
         self.scratch = mujoco.MjData(self.model)
 
-    def _fall_check_tables(self, robot) -> None:
+    def _fall_check_tables(self) -> None:
         """What the training env's fall checks (envs/config.py: TerminationConfig, relative to the reference)
         allow at each physics step: the lowest pelvis and the reference's tilt, at the frame being tracked."""
         from pipeline.envs.config import TerminationConfig
@@ -142,14 +142,14 @@ class OpenLoopJumps:
         ref = self.segment.qpos()
         frames = np.minimum(np.arange(1, CONTROL_STEPS * self.substeps + 1) // self.substeps, len(ref) - 1)
         self.min_pelvis_z = np.minimum(checks.min_base_height, ref[frames, 2] - checks.base_height_margin)
-        self.ref_tilt_xy = np.stack([quat.inverse_rotate(q, DOWN)[:2] for q in ref[frames, 3:7]])
+        self.ref_tilt_xy = quat.inverse_rotate(ref[frames, 3:7], DOWN)[:, :2]
         self.max_tilt_error = checks.max_tilt
 
     def fall_check_excess(self, qpos: np.ndarray, until: int) -> float:
         """Worst excess over the env's fall checks in physics steps [0, until): metres of pelvis below its
         lowest allowed height plus the tilt error past its limit (0: an env episode would not have ended)."""
         low = np.maximum(0.0, self.min_pelvis_z[:until] - qpos[:until, 2]).max()
-        tilt = np.stack([quat.inverse_rotate(q, DOWN)[:2] for q in qpos[:until, 3:7]])
+        tilt = quat.inverse_rotate(qpos[:until, 3:7], DOWN)[:, :2]
         over = np.maximum(0.0, np.linalg.norm(tilt - self.ref_tilt_xy[:until], axis=-1) - self.max_tilt_error).max()
         return float(low + over)
 
