@@ -20,7 +20,12 @@ policy, episodes from t = 0) then trains for M more minutes and is evaluated on 
 last line stays stage 1's, which is what the goal is about.
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
-        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M] [--set env.KEY=VALUE | train.KEY=VALUE ...]
+        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M] [--push-prior | --push-prior-from DIR]
+        [--set env.KEY=VALUE | train.KEY=VALUE ...]
+
+`--push-prior` first searches the task's push prior on the segment (priors/push_prior.py: an open-loop push,
+scaled per ψ, added to the zero action; minutes on 2 cores, reported apart from the training's time, as the
+keyframe stage's are) and trains and evaluates with it.
 """
 
 from __future__ import annotations
@@ -187,6 +192,11 @@ def main() -> None:
                              "landing then lands instead of falling into the far jump's gap)")
     parser.add_argument("--stage2-minutes", type=float, default=0.0,
                         help="then train stage 2 on the stage-1 policy for this long and evaluate it too")
+    parser.add_argument("--push-prior", action="store_true",
+                        help="search the task's push prior on this segment first (priors/push_prior.py, its time "
+                             "reported apart from training's) and train and evaluate with it; saved under --out")
+    parser.add_argument("--push-prior-from", type=Path, default=None, metavar="DIR",
+                        help="train with the push prior an earlier --push-prior run saved (DIR/push_prior)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
@@ -205,6 +215,26 @@ def main() -> None:
     print(f"[learn_cpu] {args.motion} frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
+    out = args.out or Path(tempfile.mkdtemp(prefix="learn_cpu_"))
+    if args.push_prior or args.push_prior_from:
+        from pipeline.priors.push_prior import PushPriorConfig, build_push_prior, load_push_prior, write_push_prior
+        from pipeline.robot.g1 import load_robot_config
+
+        if args.push_prior_from:
+            data.push_prior = load_push_prior(args.push_prior_from / "push_prior", data.motion.num_frames,
+                                              load_robot_config().joint_names)
+            if data.push_prior is None:
+                raise SystemExit(f"--push-prior-from {args.push_prior_from}: its push_prior.json has no prior")
+        else:
+            t_prior = time.time()
+            data.push_prior = build_push_prior(data, PushPriorConfig(enabled=True), log=lambda line: print(line, flush=True))
+            write_push_prior(out / "push_prior", data.push_prior)
+            print(f"[learn_cpu] push prior searched in {(time.time() - t_prior) / 60:.1f} minutes (not counted in "
+                  f"training's), saved to {out / 'push_prior'}", flush=True)
+        prior = data.push_prior
+        print(f"[learn_cpu] push prior: ψ {prior.summary['psi_reached']:.2f} m at w = 1; w(ψ) anchors "
+              + ", ".join(f"{p:.2f}:{w:.3f}" for p, w in zip(prior.psi_anchors, prior.weight_anchors)), flush=True)
+
     # Sized by time (0 iterations train until the limit, and the curricula follow the clock) or by count.
     overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": args.iterations,
                                       "time_limit_stage1_s": 0.0 if args.iterations else args.minutes * 60.0,
@@ -215,7 +245,6 @@ def main() -> None:
         set_dotted(overrides, item)
     cfg = TrainConfig.from_dict(overrides["train"])
     env_cfg = EnvConfig.from_dict(overrides["env"])
-    out = args.out or Path(tempfile.mkdtemp(prefix="learn_cpu_"))
     torch.set_num_threads(2)
     t1 = time.time()
     metrics = train_stage1(data, env_cfg, cfg, out, tensorboard=False, progress=False, log=print)

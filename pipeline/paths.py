@@ -17,6 +17,10 @@ def keyframes_dir(task: str) -> Path:
     return Path("data/keyframes") / task
 
 
+def push_prior_dir(task: str) -> Path:
+    return Path("data/push_prior") / task
+
+
 def model_dir(task: str, variant: str) -> Path:
     return Path("models") / task / variant
 

@@ -55,6 +55,22 @@ def run_keyframes(params: PipelineConfig, args) -> None:
     print("\n".join(f"{k}: {paths.keyframes_dir(args.task) / Path(v).name}" for k, v in written.items()))
 
 
+def run_push_prior(params: PipelineConfig, args) -> None:
+    """Search the push the env adds to the zero action per ψ (priors/push_prior.py), if the task asks for one."""
+    from pipeline.keyframes.datasets import load_tracking_data
+    from pipeline.priors.push_prior import build_push_prior, write_push_prior
+
+    task = params.tasks[args.task]
+    prior = None
+    if task.push_prior.enabled:
+        data = load_tracking_data(paths.keyframes_dir(args.task) / "d_edit")
+        prior = build_push_prior(data, task.push_prior, log=lambda line: print(line, flush=True))
+    with atomic_dir(paths.push_prior_dir(args.task)) as staging:
+        write_push_prior(staging, prior)
+    print(f"{args.task}: " + ("no push prior (tasks.<name>.push_prior.enabled is false)" if prior is None else
+                              f"push prior to ψ {prior.summary['psi_reached']:.2f} m"))
+
+
 def _train_config(params: PipelineConfig, variant: str):
     return dataclasses.replace(params.train, variant=variant)
 
@@ -63,14 +79,18 @@ def _tracking_data(params: PipelineConfig, task: str, variant: str):
     """The reference a variant tracks: D_edit, D_rule, or the unedited motion (zero offsets)."""
     from pipeline.keyframes.datasets import load_tracking_data
 
+    from pipeline.priors.push_prior import load_push_prior
+    from pipeline.robot.g1 import load_robot_config
+
     reference = _train_config(params, variant).variant_spec.reference
     base = paths.keyframes_dir(task)
-    if reference == "rule":
-        return load_tracking_data(base / "d_rule")
-    data = load_tracking_data(base / "d_edit")
+    data = load_tracking_data(base / ("d_rule" if reference == "rule" else "d_edit"))
     if reference == "original":
         data.keyframe_offsets = data.keyframe_offsets * 0.0
         data.dense_offsets = None
+        return data  # the push prior jumps each sample's ψ: meaningless against the unedited motion
+    data.push_prior = load_push_prior(paths.push_prior_dir(task), data.motion.num_frames,
+                                      load_robot_config().joint_names)
     return data
 
 

@@ -154,30 +154,40 @@ def test_export_variant_from_a_real_policy_folder(tmp_path):
                        out_dir=tmp_path / "export3")
 
 
-@pytest.mark.parametrize("offset", ["reference", "feedforward"])
-def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypatch, offset):
-    """A policy trained with `env.action_offset: reference` or `feedforward`: the exported graph adds
-    that offset's per-frame joint targets at the frame the env's step ends on (adaptive phase
-    included) — same targets as the env."""
+@pytest.mark.parametrize("offset, push", [("reference", False), ("feedforward", False), ("feedforward", True)])
+def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypatch, offset, push):
+    """A policy trained with `env.action_offset: reference` or `feedforward` (with or without a push
+    prior): the exported graph adds that offset's per-frame joint targets at the frame the env's step
+    ends on (adaptive phase included), and the push prior's w(ψ) · push at the observed ψ — same
+    targets as the env."""
     from pipeline.envs.config import EnvConfig
     from pipeline.envs.feedforward import zero_action_targets
     from pipeline.envs.tracking_env import TrackingEnv
     from pipeline.export.onnx_export import OUTPUT_NAMES, ReferenceOffset, onnx_session
+    from pipeline.priors.push_prior import PushPrior
 
     torch.manual_seed(2)
     cfg = load_robot_config()
     data = _tracking_data(wave=0.2)
+    prior = None
+    if push:  # anchors inside the samples' ψ, so worlds sit below, between and above them
+        t, j = data.motion.num_frames, len(cfg.joint_names)
+        table = 0.3 * np.sin(np.arange(t)[:, None] / 5.0 + np.arange(j)[None])
+        lo, hi = float(data.psi.min()), float(data.psi.max())
+        anchors = np.array([lo + 0.2 * (hi - lo), lo + 0.5 * (hi - lo), lo + 0.7 * (hi - lo)])
+        prior = data.push_prior = PushPrior(table, anchors, np.array([0.1, 0.4, 1.1]), tuple(cfg.joint_names))
     env = TrackingEnv(EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0,  # worlds at several ψ:
                                            "action_offset": offset, "sampling": {"mode": "uniform"}}), data, num_envs=4)
     layout = observation_layout(cfg, history=5)
     assert layout["dim"] == env.actor_obs_dim
     table = zero_action_targets(data.motion, offset, cfg)
-    reference = ReferenceOffset.for_layout(table, env.dphi, layout)
+    reference = ReferenceOffset.for_layout(table, env.dphi, layout, prior)
     module = DeployedPolicy(ComposedStandIn(layout["dim"], phase_rate=env.dphi), cfg.default_joint_pos,
                             cfg.action_scale, reference=reference)
     meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=data, obs_layout=layout,
                           action_offset=offset)
     assert meta["action_offset"] == offset and meta["outputs"]["joint_targets"].startswith("reference.joint_target")
+    assert ("push_prior" in meta["reference"]) == push and ("push_prior" in meta["outputs"]["joint_targets"]) == push
     assert np.allclose(meta["reference"]["joint_target"], table) and np.allclose(meta["reference"]["joint_pos"], data.motion.joint_pos)
     assert (offset == "reference") == np.allclose(table, data.motion.joint_pos)
     result = export_folder(module, layout["dim"], meta, tmp_path / "export")
@@ -192,6 +202,9 @@ def test_reference_action_offset_in_the_graph_matches_the_env(tmp_path, monkeypa
         obs, *_ = env.step(torch.from_numpy(action), torch.from_numpy(dphi[:, 0]))
         np.testing.assert_allclose(targets, sent[-1].numpy(), atol=1e-5)
     assert np.ptp(env.frame.numpy()) > 0  # the adaptive phase moved the worlds to different frames
+    if push:  # the worlds track samples with different pushes
+        weights = env.push_weight[env.sample].numpy()
+        assert np.ptp(weights) > 0 and np.allclose(weights, prior.weight(env.psi[env.sample].numpy()))
 
 
 # ------------------------------------------------------------------------------ fall checks

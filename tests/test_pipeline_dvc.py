@@ -148,12 +148,13 @@ def test_new_task_in_params_runs_through_dvc_repro(tmp_path):
     _write_params(repo / "params.yaml", add_task)
     targets = ["export@my_far_jump-adamimic", "report@my_far_jump"]
     log = _dvc(repo, "repro", *targets)
-    for stage in ("import@my_far_jump", "retarget@my_far_jump", "keyframes@my_far_jump",
+    for stage in ("import@my_far_jump", "retarget@my_far_jump", "keyframes@my_far_jump", "push_prior@my_far_jump",
                   "train_stage1@my_far_jump-adamimic", "train_stage2@my_far_jump-adamimic",
                   "evaluate@my_far_jump-adamimic", "export@my_far_jump-adamimic", "report@my_far_jump"):
         assert f"Running stage '{stage}'" in log, stage
     assert "far_jump_sample" not in log  # the other task was not touched
     for artifact in ("data/keyframes/my_far_jump/d_edit/meta/info.json",
+                     "data/push_prior/my_far_jump/push_prior.json",
                      "models/my_far_jump/adamimic/final/policy/model.safetensors",
                      "models/my_far_jump/adamimic/export/policy.onnx",
                      "results/my_far_jump/adamimic/metrics.json",

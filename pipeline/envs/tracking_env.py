@@ -137,6 +137,18 @@ class TrackingEnv:
         self.ref_qvel = self._tensor(m.qvel())
         targets = zero_action_targets(m, self.cfg.action_offset, self.robot, self.model)
         self.joint_target_table = None if targets is None else self._tensor(targets)  # (T, J)
+        prior = getattr(d, "push_prior", None)
+        self.push_table = self.push_weight = None
+        if prior is not None:  # priors/push_prior.py: a push on top of the feedforward, scaled per sample's ψ
+            if self.cfg.action_offset != "feedforward":
+                raise PipelineInputError("params.yaml", "env.action_offset",
+                                         f"a push prior adds to the feedforward targets, got {self.cfg.action_offset!r}")
+            joints = len(self.robot.joint_names)
+            if np.shape(prior.joint_offsets) != (t, joints):
+                raise PipelineInputError(f"task {d.task}", "push_prior.joint_offsets",
+                                         f"shape {np.shape(prior.joint_offsets)}, needs ({t}, {joints})")
+            self.push_table = self._tensor(prior.joint_offsets)  # (T, J) at w = 1
+            self.push_weight = self._tensor(prior.weight(d.psi))  # (S,)
         self.ref_gravity_xy = projected_gravity(self.ref_root_quat)[:, :2].contiguous()  # for the tilt check
         root_q = self.ref_root_quat[:, None].expand(-1, m.body_pos.shape[1], -1)
         self.ref_local_pos = quat_rotate_inverse(root_q, self.ref_body_pos - self.ref_root_pos[:, None])
@@ -372,10 +384,13 @@ class TrackingEnv:
 
     def _action_offset(self, frame: torch.Tensor) -> torch.Tensor:
         """Joint targets at a zero action: the default pose, or the reference's joints at `frame`
-        (with the feedforward of envs/feedforward.py for "feedforward")."""
+        (with the feedforward of envs/feedforward.py for "feedforward", and the push prior's w(ψ) · push
+        of the sample each world tracks when the data has one)."""
         if self.cfg.action_offset == "default":
             return self.default_joint_pos
-        return self.joint_target_table[frame]
+        if self.push_table is None:
+            return self.joint_target_table[frame]
+        return self.joint_target_table[frame] + self.push_weight[self.sample][:, None] * self.push_table[frame]
 
     def step(self, action: torch.Tensor, phase_rate_offset: torch.Tensor | None = None):
         """One control step of every world; see the module docstring and docs/INTERFACES.md."""

@@ -45,19 +45,19 @@ def load_checked_policy(policy_dir: str | Path, task: str, expect: dict | None =
     return module, meta
 
 
-def _expectations(env_cfg) -> dict:
+def _expectations(env_cfg, data) -> dict:
     from pipeline.envs.tracking_env import FRAME_OBS_DIM
     from pipeline.robot.g1 import load_robot_config
 
     robot = load_robot_config()
     return {"robot": robot.name, "joint_names": list(robot.joint_names),
             "actor_obs_dim": FRAME_OBS_DIM * env_cfg.observations.history,
-            "action_offset": env_cfg.action_offset}
+            "action_offset": env_cfg.action_offset, "push_prior": getattr(data, "push_prior", None) is not None}
 
 
 def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalConfig, policy_dir: str | Path,
                      out_dir: str | Path, videos: bool = True) -> dict:
-    module, meta = load_checked_policy(policy_dir, task, _expectations(env_cfg))
+    module, meta = load_checked_policy(policy_dir, task, _expectations(env_cfg, data))
     policy = PolicyRunner(module, eval_cfg.device, eval_cfg.deterministic)
     make_env = default_env_factory(env_cfg, eval_cfg)
     result = evaluate_policy(policy, data, eval_cfg, make_env)

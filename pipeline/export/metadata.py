@@ -163,7 +163,8 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
                    action_offset: str = "default") -> dict:
     """`action_offset`: what the policy's joint action is added to (`EnvConfig.action_offset`);
     "reference" and "feedforward" add that offset's per-frame joint targets (`reference.joint_target`,
-    envs/feedforward.py) to the recorded formula."""
+    envs/feedforward.py) to the recorded formula, and the data's push prior its w(ψ) · push
+    (`reference.push_prior`)."""
     motion = data.motion
     grid = _grid(data, psi_grid_points)
     frames = np.asarray(data.keyframe_frames, dtype=int)
@@ -179,6 +180,14 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
         # (T, J), for reading; the graph holds it
         reference["joint_target"] = zero_action_targets(motion, action_offset, robot).tolist()
         reference["joint_pos"] = motion.joint_pos.tolist()
+        prior = getattr(data, "push_prior", None)
+        if prior is not None:  # priors/push_prior.py; the graph holds it too
+            joint_targets = joint_targets.replace(" + action_scale", " + interp(psi, reference.push_prior.psi_anchors, "
+                                                  "reference.push_prior.weight_anchors) * reference.push_prior."
+                                                  "joint_offset[frame_of_phase(...)] + action_scale")
+            reference["push_prior"] = {"joint_offset": np.asarray(prior.joint_offsets).tolist(),
+                                       "psi_anchors": np.asarray(prior.psi_anchors).tolist(),
+                                       "weight_anchors": np.asarray(prior.weight_anchors).tolist()}
     return {
         "metadata_version": METADATA_VERSION,
         "task": task,

@@ -40,7 +40,8 @@ class DeployedPolicy(nn.Module):
     pose, or — for a policy trained with `env.action_offset: reference` or `feedforward` — that
     offset's per-frame table (envs/feedforward.py: `zero_action_targets`) at the frame the step ends
     on: round(φ'·(T − 1)) with φ' = φ + rate + clamp(Δφ^Δ, −0.75·rate, rate) and φ read from the
-    newest step of the raw observation, exactly as the env steps.
+    newest step of the raw observation, exactly as the env steps. With a push prior
+    (priors/push_prior.py) the offset also carries w(ψ) · push[frame], ψ read from the same step.
     """
 
     def __init__(self, policy: nn.Module, default_joint_pos, action_scale, normalizer: nn.Module | None = None,
@@ -53,6 +54,15 @@ class DeployedPolicy(nn.Module):
         self.reference = reference
         if reference is not None:
             self.register_buffer("reference_joint_targets", torch.as_tensor(np.asarray(reference.joint_targets), dtype=torch.float32))
+        if reference is not None and reference.push_offsets is not None:
+            as_f32 = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32)  # noqa: E731
+            psi, w = np.asarray(reference.psi_anchors, np.float64), np.asarray(reference.weight_anchors, np.float64)
+            self.register_buffer("push_offsets", as_f32(reference.push_offsets))
+            # w(ψ) as the first anchor's weight plus one clamped ramp per anchor interval: ops ONNX has
+            self.register_buffer("psi_knots", as_f32(psi[:-1]))
+            self.register_buffer("psi_spans", as_f32(np.diff(psi)))
+            self.register_buffer("weight_slopes", as_f32(np.diff(w) / np.diff(psi)))
+            self.register_buffer("weight_first", as_f32(w[:1]))
 
     def _offset(self, obs: torch.Tensor, phase_rate_offset: torch.Tensor) -> torch.Tensor:
         if self.reference is None:
@@ -62,7 +72,16 @@ class DeployedPolicy(nn.Module):
         phase = phase + rate + phase_rate_offset.clamp(-0.75 * rate, rate)
         last = self.reference_joint_targets.shape[0] - 1
         frame = torch.round(phase * last).clamp(0, last).long().reshape(-1)
-        return self.reference_joint_targets[frame]
+        if self.reference.push_offsets is None:
+            return self.reference_joint_targets[frame]
+        return self.reference_joint_targets[frame] + self._push_weight(obs) * self.push_offsets[frame]
+
+    def _push_weight(self, obs: torch.Tensor) -> torch.Tensor:
+        """(N, 1) w(ψ) of the push prior at the observed ψ: `PushPrior.weight`, as clamped ramps."""
+        index = self.reference.psi_index
+        psi = obs[:, index: index + 1]
+        ramps = torch.minimum(torch.relu(psi - self.psi_knots), self.psi_spans)  # (N, A - 1)
+        return self.weight_first + (ramps * self.weight_slopes).sum(-1, keepdim=True)
 
     def forward(self, obs: torch.Tensor):
         x = self.normalizer(obs) if self.normalizer is not None else obs
@@ -83,18 +102,33 @@ class ReferenceOffset:
     joint_targets: np.ndarray  # (T, J) joint targets at a zero action (`zero_action_targets`), action order
     phase_rate: float  # Δφ per control step
     phase_index: int  # where the newest step's phase sits in the raw observation
+    # The push prior (priors/push_prior.py), None without one: (T, J) push at w = 1, w(ψ)'s anchors,
+    # and where the newest step's ψ sits in the raw observation
+    push_offsets: np.ndarray | None = None
+    psi_anchors: np.ndarray | None = None
+    weight_anchors: np.ndarray | None = None
+    psi_index: int | None = None
 
     @classmethod
-    def for_layout(cls, joint_targets, phase_rate: float, layout: dict) -> "ReferenceOffset":
-        start = 0
-        for term in layout["terms"]:
-            if term["name"] == "phase":
-                break
-            start += int(term["dim"])
-        else:
-            raise ValueError("the observation layout has no phase term")
+    def for_layout(cls, joint_targets, phase_rate: float, layout: dict, push_prior=None) -> "ReferenceOffset":
         newest = (int(layout["history"]) - 1) * int(layout["step_dim"])  # history is oldest first
-        return cls(np.asarray(joint_targets, dtype=np.float32), float(phase_rate), newest + start)
+        push = {}
+        if push_prior is not None:
+            push = {"push_offsets": np.asarray(push_prior.joint_offsets, dtype=np.float32),
+                    "psi_anchors": np.asarray(push_prior.psi_anchors), "weight_anchors": np.asarray(push_prior.weight_anchors),
+                    "psi_index": newest + _term_start(layout, "psi")}
+        return cls(np.asarray(joint_targets, dtype=np.float32), float(phase_rate), newest + _term_start(layout, "phase"),
+                   **push)
+
+
+def _term_start(layout: dict, name: str) -> int:
+    """Where term `name` starts within one step of the observation layout."""
+    start = 0
+    for term in layout["terms"]:
+        if term["name"] == name:
+            return start
+        start += int(term["dim"])
+    raise ValueError(f"the observation layout has no {name} term")
 
 
 def export_onnx(module: DeployedPolicy, obs_dim: int, path: str | Path, metadata: dict | None = None) -> Path:
@@ -210,11 +244,17 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
         grid = np.linspace(float(data.psi.min()), float(data.psi.max()), 41)
         terrain = terrain_metadata(terrain_builder(data.terrain), lambda p: terrain_layout(data.terrain, p), grid)
     terminations = termination_metadata(env_cfg.terminations if env_cfg is not None else None, task)
+    push_prior = getattr(data, "push_prior", None)
+    if bool(meta.get("push_prior", False)) != (push_prior is not None):
+        raise PipelineInputError(policy_dir / "config.json", "push_prior",
+                                 f"the policy was trained {'with' if meta.get('push_prior') else 'without'} a push prior, "
+                                 f"the task's data has {'one' if push_prior is not None else 'none'}")
     metadata = build_metadata(task=task, variant=variant, robot=robot, data=data, obs_layout=layout,
                               terminations=terminations, terrain=terrain, action_offset=meta["action_offset"])
     metadata["policy_stage"] = meta.get("stage")
     reference = None
     if meta["action_offset"] != "default":  # the table policy.json records (build_metadata)
-        reference = ReferenceOffset.for_layout(metadata["reference"]["joint_target"], metadata["phase"]["rate"], layout)
+        reference = ReferenceOffset.for_layout(metadata["reference"]["joint_target"], metadata["phase"]["rate"], layout,
+                                               push_prior)
     module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale, reference=reference)
     return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir)

@@ -29,6 +29,7 @@ from pathlib import Path
 import yaml
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.priors.push_prior import PushPriorConfig
 
 EDIT_MODES = ("x", "z_apex", "z_hold", "y", "heading")
 TERRAIN_KINDS = ("flat", "gap", "step")
@@ -126,6 +127,7 @@ class TaskConfig:
     large_scale_keyframes: tuple[Selector, ...] | None = None  # None: every semantic keyframe
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     num_samples: int = 64
+    push_prior: PushPriorConfig = field(default_factory=PushPriorConfig)  # priors/push_prior.py
 
     # ------------------------------------------------------------------------------ helpers
     def input_path(self, root: str | Path = ".") -> Path:
@@ -340,7 +342,27 @@ def _parse_terrain(name: str, raw) -> TerrainConfig:
     )
 
 
-_TASK_KEYS = {"input", "keyframes", "edit", "psi", "sparse_scale", "terrain", "num_samples"}
+_TASK_KEYS = {"input", "keyframes", "edit", "psi", "sparse_scale", "terrain", "num_samples", "push_prior"}
+
+
+def _parse_push_prior(name: str, raw, edit: EditConfig) -> PushPriorConfig:
+    if raw is None:
+        return PushPriorConfig()
+    if isinstance(raw, bool):
+        raw = {"enabled": raw}
+    _check_keys(name, "push_prior", raw, {"enabled", "iterations", "population", "seed"})
+    enabled = raw.get("enabled", False)
+    if not isinstance(enabled, bool):
+        raise _err(name, "push_prior.enabled", f"must be true or false, got {enabled!r}")
+    counts = {}
+    for key, low in (("iterations", 1), ("population", 2), ("seed", 0)):
+        value = raw.get(key, getattr(PushPriorConfig, key))
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise _err(name, f"push_prior.{key}", f"must be an integer >= {low}, got {value!r}")
+        counts[key] = value
+    if enabled and (edit.mode != "x" or edit.sign != 1.0):
+        raise _err(name, "push_prior.enabled", f"a push prior lengthens a jump along +x (edit mode x), not {edit.mode!r}")
+    return PushPriorConfig(enabled=enabled, **counts)
 
 
 def _parse_task(name: str, raw: dict) -> TaskConfig:
@@ -365,6 +387,8 @@ def _parse_task(name: str, raw: dict) -> TaskConfig:
     large_kf = scale.get("keyframes", "semantic")
     large_sel = None if large_kf == "semantic" else _selectors(name, "sparse_scale.keyframes", large_kf)
 
+    push_prior = _parse_push_prior(name, raw.get("push_prior"), edit)
+
     num = raw.get("num_samples", 64)
     if isinstance(num, bool) or not isinstance(num, int) or num < 1:
         raise _err(name, "num_samples", f"must be an integer >= 1, got {num!r}")
@@ -375,7 +399,8 @@ def _parse_task(name: str, raw: dict) -> TaskConfig:
                 if not any(_selector_hits(s, k.time, k.label) for k in keyframes.listed):
                     raise _err(name, fld, f"edited keyframe {s!r} does not exist in the keyframe list")
     return TaskConfig(name=name, input=inp, edit=edit, psi=psi, keyframes=keyframes, large_scale=large,
-                      large_scale_keyframes=large_sel, terrain=terrain, num_samples=num)
+                      large_scale_keyframes=large_sel, terrain=terrain, num_samples=num,
+                      push_prior=push_prior)
 
 
 def _selector_hits(selector: Selector, time: float, label: str, tol: float = 1e-6) -> bool:

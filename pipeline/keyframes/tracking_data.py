@@ -28,6 +28,9 @@ class TrackingData:
     psi_raw: float = 0.0  # the unedited clip's task variable
     psi_ranges: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # train/easy/hard
     terrain: dict = field(default_factory=dict)  # the task's terrain declaration (keyframes.terrain)
+    # A push added to the zero action per ψ (priors/push_prior.py: PushPrior), or None; the DVC stage
+    # `push_prior` writes it beside D_edit, the stages attach it after loading.
+    push_prior: object | None = None
 
     @property
     def num_keyframes(self) -> int:

@@ -103,14 +103,14 @@ def build_critic_from_meta(meta: dict) -> DoubleCritic:
     return DoubleCritic(meta["critic_obs_dim"], arch["critic_hidden"], arch["activation"], arch.get("normalize_obs", True))
 
 
-VALIDATED_KEYS = ("robot", "joint_names", "action_dim", "actor_obs_dim", "obs_layout", "action_offset")
+VALIDATED_KEYS = ("robot", "joint_names", "action_dim", "actor_obs_dim", "obs_layout", "action_offset", "push_prior")
 # What a checkpoint written before a key existed meant by it.
-_IMPLIED = {"action_offset": "default"}
+_IMPLIED = {"action_offset": "default", "push_prior": False}
 
 
 def check_compatible(meta: dict, expect: dict | None, source: str | Path) -> None:
-    """Raises naming the first of robot / joints / observation layout / action offset that differs
-    from `expect`."""
+    """Raises naming the first of robot / joints / observation layout / action offset / push prior
+    that differs from `expect`."""
     for key in VALIDATED_KEYS:
         if expect is None or key not in expect or expect[key] is None:
             continue

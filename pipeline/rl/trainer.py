@@ -439,6 +439,8 @@ def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, free
         "obs_layout": json.loads(json.dumps(layout, default=lambda x: list(x))) if layout is not None else None,
         "phase_rate": phase_rate,
         "action_offset": action_offset,
+        # whether the zero action carries the task's push prior (priors/push_prior.py)
+        "push_prior": getattr(env, "push_table", None) is not None,
         "architecture": {"actor_hidden": net.actor_hidden, "critic_hidden": net.critic_hidden,
                          "adapter_hidden": net.adapter_hidden, "activation": net.activation,
                          "adaptive_phase": bool(cfg.variant_spec.adaptive_phase_stage1),

@@ -1,0 +1,165 @@
+"""The push prior (priors/push_prior.py): built on the bundled sample with a tiny search, its table lines up
+with the rollouts it was measured by, it round-trips through its files, bad files are named, and a policy
+trained without it is refused where the task has one."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import REPO_ROOT
+from pipeline.common.errors import PipelineInputError
+from pipeline.priors.push_prior import (FILE_ARRAYS, FILE_JSON, PushPrior, PushPriorConfig, build_push_prior,
+                                        load_push_prior, monotone_anchors, write_push_prior)
+from pipeline.robot.g1 import load_robot_config
+
+
+@pytest.fixture(scope="module")
+def sample_data():
+    """D_edit of the bundled sample (params.yaml's far_jump_sample), 8 samples."""
+    from pipeline.config import load_params
+    from pipeline.human.importers import load_human_motion
+    from pipeline.keyframes.edit import build_tracking_data
+    from pipeline.keyframes.select import select_keyframes
+    from pipeline.retarget.core import retarget
+
+    params = load_params(REPO_ROOT / "params.yaml")
+    task = params.tasks["far_jump_sample"]
+    motion, _ = retarget(load_human_motion(task.input_path(REPO_ROOT)), params.retarget, progress=False)
+    return build_tracking_data(motion, task, select_keyframes(motion, task), "edit", 8, 0)
+
+
+@pytest.fixture(scope="module")
+def sample_prior(sample_data):
+    return build_push_prior(sample_data, PushPriorConfig(enabled=True, iterations=3, population=16), log=None)
+
+
+def test_weight_reads_the_anchors_and_holds_their_ends():
+    prior = PushPrior(np.zeros((3, 2)), np.array([0.4, 1.0, 1.6]), np.array([0.0, 0.2, 1.0]), ("a", "b"))
+    np.testing.assert_allclose(prior.weight([0.1, 0.4, 0.7, 1.0, 1.3, 1.6, 2.0]), [0.0, 0.0, 0.1, 0.2, 0.6, 1.0, 1.0])
+
+
+def test_monotone_anchors_keep_the_smallest_weight_reaching_each_psi():
+    psi = np.array([0.39, 0.80, 1.05, 1.01, 0.97, 1.07, 1.28, 1.275])
+    w = np.arange(len(psi)) * 0.1
+    kept_psi, kept_w = monotone_anchors(psi, w)
+    np.testing.assert_allclose(kept_psi, [0.39, 0.80, 1.05, 1.07, 1.28])
+    np.testing.assert_allclose(kept_w, [0.0, 0.1, 0.2, 0.5, 0.6])
+
+
+def test_the_table_is_the_searched_push_in_its_window_and_fades_after_touch_down(sample_data, sample_prior):
+    prior, s = sample_prior, sample_prior.summary
+    start, stop = s["window_frames"]
+    table = prior.joint_offsets
+    assert table.shape == (sample_data.motion.num_frames, len(load_robot_config().joint_names))
+    assert not table[: start + 1].any() and not table[stop + 1:].any()  # control step k aims at start + k + 1
+    assert np.abs(table[start + 1: stop + 1]).max() > 0
+    touch = start + int(round(float(s["jump"].split("touch-down ")[1].split(" s")[0]) * sample_data.motion.fps))
+    assert not table[touch + 10 + 1:].any()  # 0.2 s of fade at 50 fps
+    np.testing.assert_allclose(np.abs(table).max(), s["max_abs_offset_rad"])
+    # The anchors: a table w(ψ) can be read from, each one a rollout that passed the env's fall checks.
+    assert np.all(np.diff(prior.psi_anchors) > 0) and np.all(np.diff(prior.weight_anchors) >= 0)
+    passed = {round(m["w"], 6): m["psi"] for m in s["measured"] if m["passes_fall_checks"]}
+    for p, w in zip(prior.psi_anchors, prior.weight_anchors):
+        assert passed[round(float(w), 6)] == pytest.approx(p)
+    # The w = 1 rollout of the stored (faded) table is the searched jump: the fade starts at its touch-down,
+    # so the flight is the same rollout, and the table lines up with the search's control steps.
+    at_one = next(m for m in s["measured"] if m["w"] == 1.0)
+    assert at_one["psi"] == pytest.approx(s["psi_reached"], abs=1e-9)
+
+
+def test_prior_round_trips_and_bad_files_are_named(tmp_path, sample_data, sample_prior):
+    robot = load_robot_config()
+    frames = sample_data.motion.num_frames
+    write_push_prior(tmp_path / "on", sample_prior)
+    back = load_push_prior(tmp_path / "on", frames, robot.joint_names)
+    np.testing.assert_array_equal(back.joint_offsets, sample_prior.joint_offsets)
+    np.testing.assert_array_equal(back.weight([0.0, 0.2, 0.5]), sample_prior.weight([0.0, 0.2, 0.5]))
+    write_push_prior(tmp_path / "off", None)
+    assert load_push_prior(tmp_path / "off", frames, robot.joint_names) is None
+    assert not (tmp_path / "off" / FILE_ARRAYS).exists()
+
+    with pytest.raises(PipelineInputError, match="joint_offsets"):
+        load_push_prior(tmp_path / "on", frames + 1, robot.joint_names)
+    with pytest.raises(PipelineInputError, match="joint_names"):
+        load_push_prior(tmp_path / "on", frames, tuple(reversed(robot.joint_names)))
+    bad = PushPrior(sample_prior.joint_offsets, np.array([0.3, 0.2]), np.array([0.0, 1.0]), sample_prior.joint_names)
+    write_push_prior(tmp_path / "bad", bad)
+    with pytest.raises(PipelineInputError, match=f"{FILE_ARRAYS}: psi_anchors"):
+        load_push_prior(tmp_path / "bad", frames, robot.joint_names)
+    (tmp_path / "on" / FILE_ARRAYS).unlink()
+    with pytest.raises(PipelineInputError, match="missing"):
+        load_push_prior(tmp_path / "on", frames, robot.joint_names)
+    (tmp_path / "off" / FILE_JSON).write_text('{"enabled": "yes"}')
+    with pytest.raises(PipelineInputError, match=f"{FILE_JSON}: enabled"):
+        load_push_prior(tmp_path / "off", frames, robot.joint_names)
+    with pytest.raises(PipelineInputError, match="run the push_prior stage"):
+        load_push_prior(tmp_path / "nowhere", frames, robot.joint_names)
+
+
+def test_a_task_without_a_flight_is_refused(sample_data):
+    import dataclasses
+
+    no_flight = dataclasses.replace(sample_data, keyframe_labels=tuple("" for _ in sample_data.keyframe_labels))
+    with pytest.raises(PipelineInputError, match="push_prior: needs a take-off"):
+        build_push_prior(no_flight, PushPriorConfig(enabled=True, iterations=1, population=2), log=None)
+
+
+def test_env_adds_the_push_to_the_zero_action_per_sample(sample_data, sample_prior):
+    import dataclasses
+
+    import torch
+
+    from pipeline.envs.config import EnvConfig
+    from pipeline.envs.tracking_env import TrackingEnv
+
+    data = dataclasses.replace(sample_data, push_prior=sample_prior)
+    cfg = EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0, "sampling": {"mode": "sweep"}})
+    plain, pushed = TrackingEnv(cfg, sample_data, num_envs=8), TrackingEnv(cfg, data, num_envs=8)
+    plain.reset(), pushed.reset()
+    frame = torch.full((8,), sample_prior.summary["window_frames"][0] + 20)
+    weight = torch.as_tensor(sample_prior.weight(sample_data.psi[pushed.sample.numpy()]), dtype=torch.float32)
+    expected = plain._action_offset(frame) + weight[:, None] * torch.as_tensor(sample_prior.joint_offsets[frame.numpy()],
+                                                                                dtype=torch.float32)
+    torch.testing.assert_close(pushed._action_offset(frame), expected)
+    assert float((pushed._action_offset(frame) - plain._action_offset(frame)).abs().max()) > 0.01
+
+    with pytest.raises(PipelineInputError, match="env.action_offset"):
+        TrackingEnv(EnvConfig.from_dict({"action_offset": "reference"}), data, num_envs=2)
+
+
+def test_a_policy_trained_without_the_prior_is_refused_where_the_task_has_one():
+    from pipeline.rl.checkpoint import check_compatible
+
+    check_compatible({"push_prior": False}, {"push_prior": False}, "policy")
+    with pytest.raises(PipelineInputError, match="policy: push_prior"):
+        check_compatible({"push_prior": False}, {"push_prior": True}, Path("policy"))
+
+
+def test_the_stage_writes_the_prior_and_the_edited_variants_train_with_it(tmp_path, monkeypatch, sample_data):
+    """`push_prior` stage on the sample's D_edit (a tiny search), then what train/evaluate/export load:
+    the prior for variants that track the edit, none for the one that tracks the unedited clip."""
+    import argparse
+    import dataclasses
+
+    from pipeline import paths
+    from pipeline.config import load_params
+    from pipeline.keyframes.datasets import write_tracking_dataset
+    from pipeline.stages import _tracking_data, run_push_prior
+
+    params = load_params(REPO_ROOT / "params.yaml")
+    task = params.tasks["far_jump_sample"]
+    monkeypatch.chdir(tmp_path)
+    write_tracking_dataset(paths.keyframes_dir("far_jump_sample") / "d_edit", sample_data)
+    args = argparse.Namespace(task="far_jump_sample")
+
+    run_push_prior(params, args)  # the sample's default: no prior, and a file that says so
+    assert not _tracking_data(params, "far_jump_sample", "adamimic").push_prior
+
+    tiny = dataclasses.replace(task, push_prior=PushPriorConfig(enabled=True, iterations=3, population=16))
+    params = dataclasses.replace(params, tasks={**params.tasks, "far_jump_sample": tiny})
+    run_push_prior(params, args)
+    assert (paths.push_prior_dir("far_jump_sample") / FILE_ARRAYS).is_file()
+    edited = _tracking_data(params, "far_jump_sample", "adamimic")
+    assert edited.push_prior is not None and edited.push_prior.joint_offsets.shape[0] == edited.motion.num_frames
+    assert _tracking_data(params, "far_jump_sample", "deepmimic_noadapt").push_prior is None
