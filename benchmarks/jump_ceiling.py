@@ -28,7 +28,9 @@ The third is the second within the training env's fall checks too (envs/config.p
 relative to the reference), from the start to 0.1 s after the touch-down: the pelvis no lower than
 min(0.4 m, the reference's − 0.25 m) and the tilt within 0.8 of the reference's. A jump that breaks them
 ends a training or evaluation episode before it lands, however well it would have landed.
-A search finds a lower bound of what the robot can do, not its maximum.
+A search finds a lower bound of what the robot can do, not its maximum. The rollouts and the search are
+`pipeline/priors/open_loop.py`; the pipeline's push prior (`pipeline/priors/push_prior.py`) is the third search
+run on a task's D_edit.
 
     .venv/bin/python benchmarks/jump_ceiling.py [--motion far_jump] [--iterations 40] [--population 256] [--seed 0]
 
