@@ -152,6 +152,14 @@ def test_export_variant_from_a_real_policy_folder(tmp_path):
     with pytest.raises(PipelineInputError, match="not found"):
         export_variant(task="far_jump", variant="adamimic", data=data, policy_dir=tmp_path / "missing",
                        out_dir=tmp_path / "export3")
+    from pipeline.priors.push_prior import PushPrior
+
+    with_prior = _tracking_data()  # a task with a push prior, a policy saved without one
+    with_prior.push_prior = PushPrior(np.zeros((with_prior.motion.num_frames, 27)), np.array([1.0]), np.array([0.0]),
+                                      tuple(cfg.joint_names))
+    with pytest.raises(PipelineInputError, match="final: push_prior: checkpoint has false, this run needs true"):
+        export_variant(task="far_jump", variant="adamimic", data=with_prior, policy_dir=tmp_path / "final",
+                       out_dir=tmp_path / "export4")
 
 
 @pytest.mark.parametrize("offset, push", [("reference", False), ("feedforward", False), ("feedforward", True)])

@@ -54,7 +54,8 @@ def test_the_table_is_the_searched_push_in_its_window_and_fades_after_touch_down
     assert table.shape == (sample_data.motion.num_frames, len(load_robot_config().joint_names))
     assert not table[: start + 1].any() and not table[stop + 1:].any()  # control step k aims at start + k + 1
     assert np.abs(table[start + 1: stop + 1]).max() > 0
-    touch = start + int(round(float(s["jump"].split("touch-down ")[1].split(" s")[0]) * sample_data.motion.fps))
+    touch = s["touchdown_frame"]
+    assert start < touch <= stop and np.abs(table[touch]).max() > 0
     assert not table[touch + 10 + 1:].any()  # 0.2 s of fade at 50 fps
     np.testing.assert_allclose(np.abs(table).max(), s["max_abs_offset_rad"])
     # The anchors: a table w(ψ) can be read from, each one a rollout that passed the env's fall checks.

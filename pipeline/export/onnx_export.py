@@ -225,7 +225,9 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
     policy_dir = Path(policy_dir)
     if not policy_dir.is_dir():
         raise PipelineInputError(policy_dir, None, "trained policy folder not found (run the training stages)")
-    module, meta = load_policy(policy_dir, expect={"robot": robot.name, "joint_names": list(robot.joint_names)})
+    push_prior = getattr(data, "push_prior", None)
+    module, meta = load_policy(policy_dir, expect={"robot": robot.name, "joint_names": list(robot.joint_names),
+                                                   "push_prior": push_prior is not None})
     if meta.get("task") not in (None, task):
         raise PipelineInputError(policy_dir / "config.json", "task",
                                  f"policy was trained for task {meta['task']!r}, not {task!r}")
@@ -244,11 +246,6 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
         grid = np.linspace(float(data.psi.min()), float(data.psi.max()), 41)
         terrain = terrain_metadata(terrain_builder(data.terrain), lambda p: terrain_layout(data.terrain, p), grid)
     terminations = termination_metadata(env_cfg.terminations if env_cfg is not None else None, task)
-    push_prior = getattr(data, "push_prior", None)
-    if bool(meta.get("push_prior", False)) != (push_prior is not None):
-        raise PipelineInputError(policy_dir / "config.json", "push_prior",
-                                 f"the policy was trained {'with' if meta.get('push_prior') else 'without'} a push prior, "
-                                 f"the task's data has {'one' if push_prior is not None else 'none'}")
     metadata = build_metadata(task=task, variant=variant, robot=robot, data=data, obs_layout=layout,
                               terminations=terminations, terrain=terrain, action_offset=meta["action_offset"])
     metadata["policy_stage"] = meta.get("stage")

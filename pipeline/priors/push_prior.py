@@ -131,19 +131,21 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
     weights = np.round(np.arange(0.0, WEIGHT_MAX + 1e-9, WEIGHT_STEP), 6)
     faded = table[frames]
     measured = jumps.jumps_of_curves(weights[:, None, None] * faded[None])
-    passing = [(psi_of(j), w) for w, j in zip(weights, measured) if j is not None and j.fall_check_excess == 0.0]
+    passes = [j is not None and j.fall_check_excess == 0.0 for j in measured]
+    passing = [(psi_of(j), w) for w, j, ok in zip(weights, measured, passes) if ok]
     if not passing:
         raise PipelineInputError(f"task {data.task}", "push_prior", "no scaled push passes the env's fall checks")
     psi_anchors, weight_anchors = monotone_anchors(*map(np.array, zip(*passing)))
     zero = measured[0]
     summary = {
         "task": data.task, "window_frames": [start, start + steps], "takeoff_frame": takeoff, "landing_frame": landing,
+        "touchdown_frame": touch,
         "psi_raw": float(data.psi_raw), "psi_reached": psi_of(jump), "jump": str(jump),
         "zero_action_psi": psi_of(zero) if zero is not None else None,
         "max_abs_offset_rad": float(np.abs(table).max()), "search_seconds": round(time.time() - began, 1),
         "config": {"iterations": cfg.iterations, "population": cfg.population, "seed": cfg.seed},
-        "measured": [{"w": float(w), "psi": psi_of(j) if j else None, "passes_fall_checks": bool(j and j.fall_check_excess == 0)}
-                     for w, j in zip(weights, measured)],
+        "measured": [{"w": float(w), "psi": psi_of(j) if j else None, "passes_fall_checks": ok}
+                     for w, j, ok in zip(weights, measured, passes)],
     }
     log(f"push prior for {data.task}: ψ {psi_of(jump):.2f} m at w = 1 ({jump}); w(ψ) over "
         f"ψ {psi_anchors[0]:.2f}–{psi_anchors[-1]:.2f} m from {len(psi_anchors)} anchors")
