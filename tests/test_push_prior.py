@@ -47,6 +47,42 @@ def test_monotone_anchors_keep_the_smallest_weight_reaching_each_psi():
     np.testing.assert_allclose(kept_w, [0.0, 0.1, 0.2, 0.5, 0.6])
 
 
+class _StubJumps:
+    """Jumps as a function of the offsets alone: the feet travel their mean, and past 1 m the pelvis dips
+    a millimetre under the flight limit (a penalty of 0.005, which a farther jump outscores)."""
+
+    def jumps(self, offsets):
+        from pipeline.priors.open_loop import MIN_FLIGHT_PELVIS_M, Jump
+
+        out = []
+        for o in offsets:
+            feet = 1.0 + float(o.mean())
+            out.append(Jump(feet_m=feet, pelvis_m=feet, takeoff_s=0.3, landing_s=0.6, tilt=0.1, pitch_rate=0.0,
+                            lowest_pelvis_m=MIN_FLIGHT_PELVIS_M - (0.001 if feet > 1.0 else 0.0),
+                            apex_pelvis_m=0.8, capture_outside_m=0.0, fall_check_excess=0.0))
+        return out
+
+
+def test_the_search_can_insist_on_a_landable_jump():
+    from pipeline.priors.open_loop import cross_entropy_search
+
+    def search(**kw):
+        return cross_entropy_search(_StubJumps(), 1.0, 0.0, 4, 32, np.random.default_rng(0), log=None, **kw)[1]
+
+    best = search()
+    assert best.feet_m > 1.0 and not best.landable(1.0, 0.0)  # by score, the hair-breadth violation wins
+    best = search(landable_only=True)
+    assert best.landable(1.0, 0.0) and best.feet_m <= 1.0
+
+
+def test_a_search_that_lands_nothing_is_an_input_error(sample_data, monkeypatch):
+    from pipeline.priors import open_loop
+
+    monkeypatch.setattr(open_loop, "cross_entropy_search", lambda *a, **k: (np.zeros((1, 1)), None))
+    with pytest.raises(PipelineInputError, match="push_prior: none of the search's 1 x 2 rollouts landed"):
+        build_push_prior(sample_data, PushPriorConfig(enabled=True, iterations=1, population=2), log=None)
+
+
 def test_the_table_is_the_searched_push_in_its_window_and_fades_after_touch_down(sample_data, sample_prior):
     prior, s = sample_prior, sample_prior.summary
     start, stop = s["window_frames"]

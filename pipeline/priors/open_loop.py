@@ -201,9 +201,12 @@ class OpenLoopJumps:
 
 def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowance_m: float, iterations: int,
                          population: int, rng: np.random.Generator, fall_checks: bool = False,
-                         log=print) -> tuple[np.ndarray, Jump | None]:
+                         log=print, landable_only: bool = False) -> tuple[np.ndarray, Jump | None]:
     """Maximises the feet's travel − penalty over the offsets; returns the best offsets and their jump
-    (None if no rollout flew at all). `fall_checks`: also penalise breaking the training env's fall checks."""
+    (None if no rollout flew at all). `fall_checks`: also penalise breaking the training env's fall checks.
+    `landable_only`: return the furthest jump with no penalty at all (None if there was none). Without
+    it a jump that breaks a limit by a hair can outscore every landable one, as a score it is; a caller
+    that needs a jump it can use asks for this."""
     shape = (len(CHANNELS), KNOTS)
     mean, std = np.zeros(shape), np.full(shape, 0.4)
     elites = max(2, population // 10)
@@ -215,12 +218,18 @@ def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowan
         found = jumps.jumps(offsets)
         scores = np.array([j.feet_m - j.penalty(land_by_s, capture_allowance_m, fall_checks) if j else -1.0 for j in found])
         order = np.argsort(-scores)
-        if scores[order[0]] > best_score:
-            best_score, best_offsets, best_jump = scores[order[0]], offsets[order[0]].copy(), found[order[0]]
+        for i in order:
+            if scores[i] <= best_score:
+                break
+            if landable_only and not found[i].landable(land_by_s, capture_allowance_m, fall_checks):
+                continue
+            best_score, best_offsets, best_jump = scores[i], offsets[i].copy(), found[i]
+            break
         elite = offsets[order[:elites]]
         mean = 0.3 * mean + 0.7 * elite.mean(axis=0)
         std = np.maximum(0.3 * std + 0.7 * elite.std(axis=0), 0.03)
         if log is not None and (it % 5 == 4 or it == iterations - 1):
-            log(f"  iteration {it + 1:3d} ({time.time() - start:4.0f} s): best {best_score:.2f} m of feet travel, "
+            best = f"{best_score:.2f} m of feet travel" if best_jump is not None else "none landable yet"
+            log(f"  iteration {it + 1:3d} ({time.time() - start:4.0f} s): best {best}, "
                 f"elite mean {scores[order[:elites]].mean():.2f} m")
     return best_offsets, best_jump

@@ -117,10 +117,12 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
     log(f"push prior for {data.task}: frames {start}..{start + steps} (take-off {takeoff}, landing {landing}), "
         f"{cfg.iterations} iterations of {cfg.population} rollouts")
     offsets, jump = cross_entropy_search(jumps, land_by, allowance, cfg.iterations, cfg.population,
-                                         np.random.default_rng(cfg.seed), fall_checks=True, log=log)
-    if jump is None or not jump.landable(land_by, allowance, fall_checks=True):
+                                         np.random.default_rng(cfg.seed), fall_checks=True, log=log,
+                                         landable_only=True)
+    if jump is None:
         raise PipelineInputError(f"task {data.task}", "push_prior",
-                                 f"the search found no landable jump within the env's fall checks (best: {jump})")
+                                 f"none of the search's {cfg.iterations} x {cfg.population} rollouts landed within "
+                                 f"the env's fall checks (raise push_prior.iterations or .population)")
     curve = jumps.curves(offsets[None])[0]  # (steps, J): control step k aims at frame start + k + 1
     touch = start + int(round(jump.landing_s * fps))
     frames = start + 1 + np.arange(steps)
