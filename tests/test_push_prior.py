@@ -48,8 +48,12 @@ def test_monotone_anchors_keep_the_smallest_weight_reaching_each_psi():
 
 
 class _StubJumps:
-    """Jumps as a function of the offsets alone: the feet travel their mean, and past 1 m the pelvis dips
-    a millimetre under the flight limit (a penalty of 0.005, which a farther jump outscores)."""
+    """Jumps as a function of the offsets alone: the feet travel 1 m plus their mean, past 1 m the pelvis dips
+    a millimetre under the flight limit (a penalty of 0.005, which a farther jump outscores), and below
+    0.9 m there is no flight (None), as a rollout that never leaves the ground."""
+
+    def __init__(self, landable_up_to_m: float = 1.0):
+        self.landable_up_to_m = landable_up_to_m
 
     def jumps(self, offsets):
         from pipeline.priors.open_loop import MIN_FLIGHT_PELVIS_M, Jump
@@ -57,8 +61,11 @@ class _StubJumps:
         out = []
         for o in offsets:
             feet = 1.0 + float(o.mean())
+            if feet < 0.9:
+                out.append(None)
+                continue
             out.append(Jump(feet_m=feet, pelvis_m=feet, takeoff_s=0.3, landing_s=0.6, tilt=0.1, pitch_rate=0.0,
-                            lowest_pelvis_m=MIN_FLIGHT_PELVIS_M - (0.001 if feet > 1.0 else 0.0),
+                            lowest_pelvis_m=MIN_FLIGHT_PELVIS_M - (0.001 if feet > self.landable_up_to_m else 0.0),
                             apex_pelvis_m=0.8, capture_outside_m=0.0, fall_check_excess=0.0))
         return out
 
@@ -73,6 +80,10 @@ def test_the_search_can_insist_on_a_landable_jump():
     assert best.feet_m > 1.0 and not best.landable(1.0, 0.0)  # by score, the hair-breadth violation wins
     best = search(landable_only=True)
     assert best.landable(1.0, 0.0) and best.feet_m <= 1.0
+    # nothing landable, some rollouts never flew: no jump, rather than the best of the unusable ones
+    nothing = cross_entropy_search(_StubJumps(landable_up_to_m=0.0), 1.0, 0.0, 4, 32, np.random.default_rng(0),
+                                   log=None, landable_only=True)
+    assert nothing[1] is None
 
 
 def test_a_search_that_lands_nothing_is_an_input_error(sample_data, monkeypatch):

@@ -221,7 +221,7 @@ def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowan
         for i in order:
             if scores[i] <= best_score:
                 break
-            if landable_only and not found[i].landable(land_by_s, capture_allowance_m, fall_checks):
+            if landable_only and not (found[i] and found[i].landable(land_by_s, capture_allowance_m, fall_checks)):
                 continue
             best_score, best_offsets, best_jump = scores[i], offsets[i].copy(), found[i]
             break
