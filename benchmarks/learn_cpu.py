@@ -20,7 +20,8 @@ policy, episodes from t = 0) then trains for M more minutes and is evaluated on 
 last line stays stage 1's, which is what the goal is about.
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
-        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M] [--push-prior | --push-prior-from DIR]
+        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M]
+        [--push-prior [--push-prior-knots K] | --push-prior-from DIR]
         [--set env.KEY=VALUE | train.KEY=VALUE ...]
 
 `--push-prior` first searches the task's push prior on the segment (priors/push_prior.py: an open-loop push,
@@ -197,6 +198,8 @@ def main() -> None:
                              "reported apart from training's) and train and evaluate with it; saved under --out")
     parser.add_argument("--push-prior-from", type=Path, default=None, metavar="DIR",
                         help="train with the push prior an earlier --push-prior run saved (DIR/push_prior)")
+    parser.add_argument("--push-prior-knots", type=int, default=None, metavar="K",
+                        help="--push-prior's search with K knots per push curve (default: PushPriorConfig's)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
@@ -227,7 +230,10 @@ def main() -> None:
                 raise SystemExit(f"--push-prior-from {args.push_prior_from}: its push_prior.json has no prior")
         else:
             t_prior = time.time()
-            data.push_prior = build_push_prior(data, PushPriorConfig(enabled=True), log=lambda line: print(line, flush=True))
+            prior_cfg = PushPriorConfig(enabled=True)
+            if args.push_prior_knots is not None:
+                prior_cfg = dataclasses.replace(prior_cfg, knots=args.push_prior_knots)
+            data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True))
             write_push_prior(out / "push_prior", data.push_prior)
             print(f"[learn_cpu] push prior searched in {(time.time() - t_prior) / 60:.1f} minutes (not counted in "
                   f"training's), saved to {out / 'push_prior'}", flush=True)

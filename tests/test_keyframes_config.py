@@ -65,6 +65,8 @@ def test_selectors_and_ranges_helpers():
     ({"keyframes": [{"time": 1.0}, {"time": 0.5}]}, "keyframes", "increasing"),
     ({"keyframes": [{"time": 0.5, "label": "takeoff"}, {"time": 1.0}]}, "edit.keyframes", "does not exist"),
     ({"keyframes": [{"time": 0.5}], "edit": {"mode": "x", "keyframes": [0.7]}}, "edit.keyframes", "does not exist"),
+    ({"push_prior": {"enabled": True, "knots": 1}}, "push_prior.knots", ">= 2"),
+    ({"push_prior": {"enabled": True, "iterations": 0}}, "push_prior.iterations", ">= 1"),
     ({"colour": "red"}, "", "unknown key"),
 ])
 def test_bad_task_names_task_and_field(changes, field, words):

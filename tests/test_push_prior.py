@@ -52,6 +52,8 @@ class _StubJumps:
     a millimetre under the flight limit (a penalty of 0.005, which a farther jump outscores), and below
     0.9 m there is no flight (None), as a rollout that never leaves the ground."""
 
+    knots = 12
+
     def __init__(self, landable_up_to_m: float = 1.0):
         self.landable_up_to_m = landable_up_to_m
 
@@ -84,6 +86,20 @@ def test_the_search_can_insist_on_a_landable_jump():
     nothing = cross_entropy_search(_StubJumps(landable_up_to_m=0.0), 1.0, 0.0, 4, 32, np.random.default_rng(0),
                                    log=None, landable_only=True)
     assert nothing[1] is None
+
+
+def test_the_push_curves_are_linear_between_the_configured_knots(sample_data):
+    from pipeline.priors.open_loop import CHANNELS, OpenLoopJumps
+
+    jumps = OpenLoopJumps(sample_data.motion, load_robot_config(), 0, 31, knots=7)  # a knot every 5 steps
+    offsets = np.random.default_rng(0).normal(size=(2, len(CHANNELS), 7))
+    curves = jumps.curves(offsets)
+    knee = jumps.channel_joints[1]
+    np.testing.assert_allclose(curves[:, ::5, knee[0]], offsets[:, 1])  # each knot's value at its step ...
+    np.testing.assert_allclose(curves[:, ::5, knee[1]], offsets[:, 1])  # ... on both sides
+    np.testing.assert_allclose(curves[:, 2, knee[0]], 0.6 * offsets[:, 1, 0] + 0.4 * offsets[:, 1, 1])  # linear between
+    with pytest.raises(ValueError, match="at least 2 knots"):
+        OpenLoopJumps(sample_data.motion, load_robot_config(), 0, 31, knots=1)
 
 
 def test_a_search_that_lands_nothing_is_an_input_error(sample_data, monkeypatch):

@@ -350,12 +350,12 @@ def _parse_push_prior(name: str, raw, edit: EditConfig) -> PushPriorConfig:
         return PushPriorConfig()
     if isinstance(raw, bool):
         raw = {"enabled": raw}
-    _check_keys(name, "push_prior", raw, {"enabled", "iterations", "population", "seed"})
+    _check_keys(name, "push_prior", raw, {"enabled", "iterations", "population", "seed", "knots"})
     enabled = raw.get("enabled", False)
     if not isinstance(enabled, bool):
         raise _err(name, "push_prior.enabled", f"must be true or false, got {enabled!r}")
     counts = {}
-    for key, low in (("iterations", 1), ("population", 2), ("seed", 0)):
+    for key, low in (("iterations", 1), ("population", 2), ("seed", 0), ("knots", 2)):
         value = raw.get(key, getattr(PushPriorConfig, key))
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise _err(name, f"push_prior.{key}", f"must be an integer >= {low}, got {value!r}")

@@ -30,7 +30,7 @@ from pipeline.common import quat
 CHANNELS = (("left_hip_pitch_joint", "right_hip_pitch_joint"), ("left_knee_joint", "right_knee_joint"),
             ("left_ankle_pitch_joint", "right_ankle_pitch_joint"),
             ("left_shoulder_pitch_joint", "right_shoulder_pitch_joint"), ("left_elbow_joint", "right_elbow_joint"))
-KNOTS = 12
+KNOTS = 12  # the default resolution in time (push_prior.py: PushPriorConfig.knots, jump_ceiling.py --knots)
 MIN_FLIGHT_S = 0.1
 MAX_TILT, MAX_PITCH_RATE, MIN_FLIGHT_PELVIS_M = 0.6, 3.0, 0.5
 DOWN = np.array([0.0, 0.0, -1.0])
@@ -72,9 +72,10 @@ class Jump:
 class OpenLoopJumps:
     """Rolls out batches of offset curves over `steps` control steps of `motion` from frame `start`
     (MuJoCo C, 2 threads). Control step k aims at frame start + k + 1, as the env's step aims at the
-    frame it ends on; past the motion's end, at its last frame."""
+    frame it ends on; past the motion's end, at its last frame. Each channel's curve is linear between
+    `knots` evenly spaced knots over the window."""
 
-    def __init__(self, motion, robot, start: int = 0, steps: int = 70):
+    def __init__(self, motion, robot, start: int = 0, steps: int = 70, knots: int = KNOTS):
         import mujoco
 
         from pipeline.envs.feedforward import zero_action_targets
@@ -94,7 +95,10 @@ class OpenLoopJumps:
         self.targets = targets[np.minimum(self.start + 1 + np.arange(self.steps), last)]
         self.num_joints = targets.shape[1]
         self.channel_joints = [[robot.joint_names.index(j) for j in pair] for pair in CHANNELS]
-        self.knot_steps = np.linspace(0, self.steps - 1, KNOTS)
+        if knots < 2:
+            raise ValueError(f"open-loop curves need at least 2 knots, got {knots}")
+        self.knots = int(knots)
+        self.knot_steps = np.linspace(0, self.steps - 1, self.knots)
         # Motion bodies and the model's tracked sites are both in robot.tracked_body_names order.
         self.ankles = [segment.body_index("left_ankle"), segment.body_index("right_ankle")]
 
@@ -207,7 +211,7 @@ def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowan
     `landable_only`: return the furthest jump with no penalty at all (None if there was none). Without
     it a jump that breaks a limit by a hair can outscore every landable one, as a score it is; a caller
     that needs a jump it can use asks for this."""
-    shape = (len(CHANNELS), KNOTS)
+    shape = (len(CHANNELS), jumps.knots)
     mean, std = np.zeros(shape), np.full(shape, 0.4)
     elites = max(2, population // 10)
     best_score, best_offsets, best_jump = -np.inf, np.zeros(shape), None

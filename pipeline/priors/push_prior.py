@@ -46,12 +46,17 @@ FILE_JSON, FILE_ARRAYS = "push_prior.json", "push_prior.npz"
 @dataclass(frozen=True)
 class PushPriorConfig:
     """`tasks.<name>.push_prior` in params.yaml. The search costs iterations × population rollouts of
-    ~1.4 s each (40 × 256: about 4–8 minutes on 2 cores)."""
+    ~1.4 s each (40 × 256: about 1–4 minutes on 2 cores). `knots`: the push curves' resolution in time,
+    knots evenly spaced over the window (about 1.4 s)."""
 
     enabled: bool = False
     iterations: int = 40
     population: int = 256
     seed: int = 0
+    # 12: a knot every 0.13 s. With 20 the same search within the fall checks reaches ψ 1.85–1.98 m on
+    # learn_cpu's far-jump segment against 1.58 m, yet the policies trained on that prior scored lower
+    # (benchmarks/RESULTS.md, session 24).
+    knots: int = 12
 
 
 @dataclass
@@ -104,7 +109,7 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
     fps = motion.fps
     start = max(0, takeoff - int(round(LEAD_S * fps)))
     steps = min(motion.num_frames - 1 - start, landing - start + int(round(AFTER_LANDING_S * fps)))
-    jumps = OpenLoopJumps(motion, robot, start, steps)
+    jumps = OpenLoopJumps(motion, robot, start, steps, knots=cfg.knots)
     ankle_x = jumps.segment.body_pos[:, jumps.ankles, 0]
     clip_feet = float(ankle_x[landing].min() - ankle_x[takeoff].max())
 
@@ -124,7 +129,9 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
                                  f"none of the search's {cfg.iterations} x {cfg.population} rollouts landed within "
                                  f"the env's fall checks (raise push_prior.iterations or .population)")
     curve = jumps.curves(offsets[None])[0]  # (steps, J): control step k aims at frame start + k + 1
-    touch = start + int(round(jump.landing_s * fps))
+    # The fade starts after the control step the touch-down falls in (it aims at frame start + k + 1), so the
+    # table at w = 1 replays the searched flight exactly.
+    touch = start + int(round(jump.landing_s / jumps.dt)) // jumps.substeps + 1
     frames = start + 1 + np.arange(steps)
     fade = np.clip(1.0 - (frames - touch) / (FADE_S * fps), 0.0, 1.0)
     table = np.zeros((motion.num_frames, curve.shape[1]))
@@ -145,7 +152,7 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
         "psi_raw": float(data.psi_raw), "psi_reached": psi_of(jump), "jump": str(jump),
         "zero_action_psi": psi_of(zero) if zero is not None else None,
         "max_abs_offset_rad": float(np.abs(table).max()), "search_seconds": round(time.time() - began, 1),
-        "config": {"iterations": cfg.iterations, "population": cfg.population, "seed": cfg.seed},
+        "config": {"iterations": cfg.iterations, "population": cfg.population, "seed": cfg.seed, "knots": cfg.knots},
         "measured": [{"w": float(w), "psi": psi_of(j) if j else None, "passes_fall_checks": ok}
                      for w, j, ok in zip(weights, measured, passes)],
     }
