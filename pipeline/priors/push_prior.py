@@ -54,8 +54,8 @@ class PushPriorConfig:
     population: int = 256
     seed: int = 0
     # 12: a knot every 0.13 s. With 20 the same search within the fall checks reaches ψ 1.85–1.98 m on
-    # learn_cpu's far-jump segment against 1.58 m, yet the policies trained on that prior scored lower
-    # (benchmarks/RESULTS.md, session 24).
+    # learn_cpu's far-jump segment against 1.58 m, yet the policies trained on that prior scored no better
+    # over three seeds and lower on the easy range (benchmarks/RESULTS.md, session 24).
     knots: int = 12
 
 
