@@ -199,12 +199,14 @@ def main() -> None:
     parser.add_argument("--push-prior-from", type=Path, default=None, metavar="DIR",
                         help="train with the push prior an earlier --push-prior run saved (DIR/push_prior)")
     parser.add_argument("--push-prior-knots", type=int, default=None, metavar="K",
-                        help="--push-prior's search with K knots per push curve (default: PushPriorConfig's)")
+                        help="--push-prior's search with K knots per push curve (default: PushPriorConfig's, 12)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
     if args.iterations < 0:
         parser.error("--iterations: must be >= 0 (0: train for --minutes)")
+    if args.push_prior_knots is not None and not args.push_prior:
+        parser.error("--push-prior-knots: only with --push-prior (a saved prior keeps the knots it was searched with)")
 
     import torch
 
@@ -230,9 +232,8 @@ def main() -> None:
                 raise SystemExit(f"--push-prior-from {args.push_prior_from}: its push_prior.json has no prior")
         else:
             t_prior = time.time()
-            prior_cfg = PushPriorConfig(enabled=True)
-            if args.push_prior_knots is not None:
-                prior_cfg = dataclasses.replace(prior_cfg, knots=args.push_prior_knots)
+            knots = {} if args.push_prior_knots is None else {"knots": args.push_prior_knots}
+            prior_cfg = PushPriorConfig(enabled=True, **knots)
             data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True))
             write_push_prior(out / "push_prior", data.push_prior)
             print(f"[learn_cpu] push prior searched in {(time.time() - t_prior) / 60:.1f} minutes (not counted in "
