@@ -278,6 +278,9 @@ def main() -> None:
             value = h["seconds"] / 60 if key is None else h.get(key, float("nan"))
             cells.append(fmt.format(value) if not (isinstance(value, float) and value != value) else "nan".rjust(len(name)))
         print("  ".join(c.rjust(len(n)) for c, (n, _, _) in zip(cells, cols)))
+    if "psi_level_success" in history[-1]:
+        print("[learn_cpu] ψ curriculum at the end, running success by level (bottom = nearest the clip's ψ): "
+              + " ".join(f"{v:.2f}" for v in history[-1]["psi_level_success"]))
     print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
     train_success = metrics.get("success_rate") or 0.0
     ev, episodes = evaluate_from_start(out / "policy", data, env_cfg)

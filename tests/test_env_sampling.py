@@ -17,7 +17,7 @@ from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.tracking_env import TrackingEnv
 from pipeline.evaluation.config import EvalConfig
 from pipeline.evaluation.evaluate import evaluation_env_config
-from test_env import data, quiet_cfg  # noqa: F401  (a 61-frame standing clip with 3 ψ samples)
+from test_env import FRAMES, data, quiet_cfg  # noqa: F401  (a 61-frame standing clip with 3 ψ samples)
 
 
 def test_failure_rates_follow_finished_episodes_by_hand():
@@ -78,6 +78,66 @@ def test_curriculum_levels_by_hand():
     assert SampleSampler(SamplingConfig(mode="curriculum", levels=8), psi, 1.1, num_worlds=4).num_levels == 6
 
 
+def test_curriculum_level_success_rates_by_hand():
+    psi = np.array([1.0, 1.1, 1.5, 0.5, 2.0, 0.8])  # levels {1, 0} {5, 2} {3, 4}, as above
+    sampler = SampleSampler(SamplingConfig(mode="curriculum", levels=3, level_rate=0.1), psi, 1.1, num_worlds=4)
+    assert sampler.level_success.tolist() == [0.0, 0.0, 0.0]
+    sampler.level[:] = torch.tensor([0, 0, 1, 2])
+    # level 0: two episodes, one success (one step of 0.2 towards 0.5); level 1: a fall; level 2: a success
+    sampler.record(torch.tensor([0, 1, 2, 3]), torch.tensor([0, 1, 5, 3]), torch.tensor([False, True, True, False]))
+    assert sampler.level_success.tolist() == pytest.approx([0.2 * 0.5, 0.0, 0.1])
+    restored = SampleSampler(SamplingConfig(mode="curriculum", levels=3), psi, 1.1, num_worlds=4)
+    restored.load_state_dict(sampler.state_dict())
+    assert torch.equal(restored.level_success, sampler.level_success)
+
+
+def test_relative_demotion_ignores_falls_the_bottom_level_has_too():
+    psi = np.array([1.0, 1.1, 1.5, 0.5, 2.0, 0.8])
+    cfg = SamplingConfig(mode="curriculum", levels=3, demotion="relative", relative_ratio=0.8, level_rate=1e-6)
+    sampler = SampleSampler(cfg, psi, 1.1, num_worlds=3)
+    # the bottom succeeds 40 % of the time, level 1 35 % (within 0.8 of it), level 2 20 % (below)
+    sampler.level_success = torch.tensor([0.4, 0.35, 0.2], dtype=torch.float64)
+    sampler.level[:] = torch.tensor([0, 1, 2])
+    sampler.record(torch.arange(3), torch.tensor([0, 2, 3]), torch.tensor([True, True, True]))
+    assert sampler.level.tolist() == [0, 1, 1]  # only the fall at the measurably harder level 2 counts
+    sampler.record(torch.tensor([1]), torch.tensor([2]), torch.tensor([False]))
+    assert sampler.level.tolist() == [0, 2, 1]  # a success still climbs
+    # "every_fall" (the default) sends every failing world down
+    plain = SampleSampler(dataclasses.replace(cfg, demotion="every_fall"), psi, 1.1, num_worlds=3)
+    plain.level_success = sampler.level_success.clone()
+    plain.level[:] = torch.tensor([0, 1, 2])
+    plain.record(torch.arange(3), torch.tensor([0, 2, 3]), torch.tensor([True, True, True]))
+    assert plain.level.tolist() == [0, 0, 1]
+    # before the bottom level has a success, only levels that never succeeded count a fall
+    fresh = SampleSampler(cfg, psi, 1.1, num_worlds=2)
+    fresh.level[:] = torch.tensor([1, 2])
+    fresh.level_success = torch.tensor([0.0, 0.0, 0.3], dtype=torch.float64)
+    fresh.record(torch.arange(2), torch.tensor([2, 3]), torch.tensor([True, True]))
+    assert fresh.level.tolist() == [0, 2]
+
+
+def test_relative_demotion_lets_worlds_climb_past_shared_falls():
+    """A simulated policy that fails 60 % of its episodes at every level for reasons unrelated to ψ (the
+    randomisation) and cannot do the top two levels at all: "every_fall" keeps the worlds near the bottom,
+    "relative" brings them to the frontier."""
+    psi = np.linspace(0.2, 2.0, 64)
+    levels = 8
+
+    def run(demotion: str) -> float:
+        torch.manual_seed(0)
+        sampler = SampleSampler(SamplingConfig(mode="curriculum", levels=levels, demotion=demotion), psi, 1.1, 256)
+        for _ in range(300):
+            worlds = torch.arange(256)
+            level = sampler.level.clone()
+            failed = (torch.rand(256) < 0.6) | (level >= levels - 2)
+            sampler.record(worlds, sampler.draw(worlds), failed)
+        return float(sampler.level.double().mean())
+
+    every_fall, relative = run("every_fall"), run("relative")
+    assert every_fall < 2.0  # a walk 40 % up and 60 % down stays near the bottom (a mean level ~1.5 of 7)
+    assert relative > 3.0  # most worlds reach the levels they cannot do yet, or rehearse after graduating
+
+
 def test_only_episodes_that_met_the_edit_are_recorded(data):  # noqa: F811
     # the edit starts at the second keyframe (frame 25): an episode started there or later says nothing about ψ
     edited_late = dataclasses.replace(data, edited=np.array([False, True, False]))
@@ -94,6 +154,35 @@ def test_only_episodes_that_met_the_edit_are_recorded(data):  # noqa: F811
     assert term.tolist() == [True, True, False, False]
     assert env.sampler.level.tolist() == [0, 1, 1, 1]  # world 0's fall counted, world 1's did not
     assert env.start_frame[:2].tolist() == [0, 0]  # both restarted at t = 0 (no RSI)
+
+
+def test_success_test_judges_episodes_as_the_evaluation_does(data):  # noqa: F811
+    # keyframe targets 0, 0.5 and 1.5 m ahead of a robot that stands still; a keyframe-error termination
+    # at 0.3 m (max over bodies) ends the last two at the first keyframe
+    offsets = np.zeros_like(data.keyframe_offsets)
+    offsets[1, :, 0], offsets[2, :, 0] = 0.5, 1.5
+    ahead = dataclasses.replace(data, psi=np.array([0.0, 0.5, 1.5]), keyframe_offsets=offsets)
+    first_crossing = {}
+    for judge in ("success_test", "termination"):
+        cfg = quiet_cfg(sampling={"mode": "adaptive", "uniform_ratio": 0.0, "rate": 1.0, "judge": judge},
+                        terminations={"keyframe_error": {"start": 0.3, "min": 0.3, "max": 0.3}})
+        env = TrackingEnv(cfg, ahead, num_envs=3)
+        env.reset()
+        env.sample[:] = torch.tensor([0, 1, 2])
+        env.sampler.failure_rate[:] = 0.5
+        for _ in range(FRAMES):
+            _, _, term, trunc, info = env.step(torch.zeros(3, env.action_dim))
+            if info["keyframe_crossed"].any():
+                break
+        assert term.tolist() == [False, True, True] and not info["terminated_by"]["base_height"].any()
+        first_crossing[judge] = env.sampler.failure_rate.tolist()
+        for _ in range(FRAMES):  # world 0's episode, and any later one of sample 0, ends at the clip's end
+            env.step(torch.zeros(3, env.action_dim))
+        assert env.sampler.failure_rate[0] == 0.0  # finished with every keyframe on target: a success
+    # 0.5 m off is within the evaluation's 1 m: the termination cut that episode short and it is not judged;
+    # 1.5 m off fails the test. Judged by termination, both count as failures.
+    assert first_crossing["success_test"] == [0.5, 0.5, 1.0]
+    assert first_crossing["termination"] == [0.5, 1.0, 1.0]
 
 
 def test_env_resets_draw_from_the_sampler_and_record_falls(data):  # noqa: F811
@@ -143,7 +232,12 @@ def test_evaluation_scores_every_psi_alike():
 @pytest.mark.parametrize("raw, key", [({"mode": "hard_first"}, "sampling.mode"),
                                       ({"mode": "curriculum", "levels": 1}, "sampling.levels"),
                                       ({"uniform_ratio": 1.5}, "sampling.uniform_ratio"),
-                                      ({"rate": 0.0}, "sampling.rate")])
+                                      ({"rate": 0.0}, "sampling.rate"),
+                                      ({"demotion": "never"}, "sampling.demotion"),
+                                      ({"relative_ratio": 0.0}, "sampling.relative_ratio"),
+                                      ({"level_rate": 1.5}, "sampling.level_rate"),
+                                      ({"judge": "falls"}, "sampling.judge"),
+                                      ({"success_threshold_m": 0.0}, "sampling.success_threshold_m")])
 def test_bad_sampling_values_name_the_key(raw, key):
     with pytest.raises(PipelineInputError, match=key.replace(".", r"\.")):
         EnvConfig.from_dict({"sampling": raw})

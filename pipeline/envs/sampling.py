@@ -8,7 +8,10 @@ curriculum that widens ψ outwards from the clip's own value, or an even sweep f
   and cut into `levels` groups; each world draws from its own level, goes one up after an episode it
   finishes and one down after a fall, and a world that finishes the top level restarts at a random
   one so the whole range stays rehearsed. Worlds then gather where the policy is just failing, which
-  uniform draws over a wide range (most of it out of reach or already solved) rarely visit.
+  uniform draws over a wide range (most of it out of reach or already solved) rarely visit. Each level
+  keeps a running success rate; with `demotion: relative` a fall only sends a world down where its
+  level succeeds clearly less often than the bottom level does, so the falls every level shares (the
+  randomisation's, the exploration's) do not hold the walk at the bottom.
 * sweep — evaluation: world w's k-th episode tracks sample (w + k·worlds) mod samples, so the samples
   are scored equally often and two policies meet the same ψ values. Uniform draws leave the ψ mix to
   chance (and to when each policy's episodes end), which moved a score by ±4 points over 128 episodes.
@@ -44,6 +47,8 @@ class SampleSampler:
         self.level_table = torch.as_tensor(table, device=device)
         self.level_size = torch.as_tensor([len(g) for g in groups], device=device)
         self.level = torch.zeros(num_worlds, dtype=torch.long, device=device)
+        # curriculum: each level's running success rate over the episodes recorded there (0 until measured)
+        self.level_success = torch.zeros(levels, dtype=torch.float64, device=device)
         self.num_worlds = num_worlds
         self.episodes_drawn = torch.zeros(num_worlds, dtype=torch.long, device=device)  # sweep: per world
 
@@ -82,28 +87,23 @@ class SampleSampler:
         if worlds.numel() == 0:
             return
         if self.cfg.mode == "adaptive":
-            self._record_failures(samples, failed)
+            self.failure_rate = running_rate(self.failure_rate, samples, failed, self.cfg.rate)
         elif self.cfg.mode == "curriculum":
             level, top = self.level[worlds], self.num_levels - 1
-            moved = torch.where(failed, (level - 1).clamp(min=0), (level + 1).clamp(max=top))
+            self.level_success = running_rate(self.level_success, level, ~failed, self.cfg.level_rate)
+            demoted = failed
+            if self.cfg.demotion == "relative":
+                demoted = failed & (self.level_success[level] <= self.cfg.relative_ratio * self.level_success[0])
+            moved = torch.where(demoted, (level - 1).clamp(min=0), torch.where(failed, level, (level + 1).clamp(max=top)))
             graduated = ~failed & (level == top)
             restart = torch.randint(self.num_levels, (worlds.numel(),), device=self.device)
             self.level[worlds] = torch.where(graduated, restart, moved)
-
-    def _record_failures(self, samples: torch.Tensor, failed: torch.Tensor) -> None:
-        count = torch.zeros_like(self.failure_rate).index_add_(0, samples, torch.ones_like(samples, dtype=torch.float64))
-        fails = torch.zeros_like(self.failure_rate).index_add_(0, samples, failed.to(torch.float64))
-        seen = count > 0
-        # One EMA step per episode, several episodes of one sample in one step count together.
-        step = (self.cfg.rate * count).clamp(max=1.0)
-        self.failure_rate = torch.where(seen, self.failure_rate + step * (fails / count.clamp(min=1) - self.failure_rate),
-                                        self.failure_rate)
 
     def mean_level(self) -> float:
         """Curriculum progress in [0, 1]: the worlds' mean level over the top level."""
         return float(self.level.double().mean()) / (self.num_levels - 1) if self.num_levels > 1 else 0.0
 
-    _STATE = ("failure_rate", "level", "episodes_drawn")
+    _STATE = ("failure_rate", "level", "level_success", "episodes_drawn")
 
     def state_dict(self) -> dict:
         return {name: getattr(self, name).detach().cpu().clone() for name in self._STATE}
@@ -117,3 +117,12 @@ class SampleSampler:
                 raise PipelineInputError("env state", f"sampler.{name}",
                                          f"expected {tuple(current.shape)}, got {tuple(saved.shape)}")
             setattr(self, name, saved.to(current.device, current.dtype).clone())
+
+
+def running_rate(rate: torch.Tensor, index: torch.Tensor, outcome: torch.Tensor, step: float) -> torch.Tensor:
+    """`rate` (one entry per sample or level) after the episodes `index` ended with `outcome` (bool):
+    one EMA step of size `step` per episode; several episodes of one entry in one call count together."""
+    count = torch.zeros_like(rate).index_add_(0, index, torch.ones_like(index, dtype=rate.dtype))
+    hits = torch.zeros_like(rate).index_add_(0, index, outcome.to(rate.dtype))
+    weight = (step * count).clamp(max=1.0)
+    return torch.where(count > 0, rate + weight * (hits / count.clamp(min=1) - rate), rate)

@@ -255,6 +255,8 @@ class TrackingEnv:
         self.next_kf = torch.zeros(n, dtype=torch.long, device=dev)
         self.episode_step = torch.zeros(n, dtype=torch.long, device=dev)
         self.start_frame = torch.zeros(n, dtype=torch.long, device=dev)
+        # the episode crossed a keyframe with a body-mean error over the success test's threshold
+        self.keyframe_missed = torch.zeros(n, dtype=torch.bool, device=dev)
         self.prev_action, self.prev_action2 = z(n, j), z(n, j)
         self.prev_joint_vel = z(n, j)
         self.odometry, self.odom_origin = z(n, 3), z(n, 3)
@@ -419,6 +421,8 @@ class TrackingEnv:
         s = self._score_fn(b.qpos, b.qvel, b.site_pos, b.site_quat, b.actuator_force, b.foot_contact, action)
         terminated, truncated, crossed = s["terminated"], s["truncated"], s["crossed"]
         self.next_kf = s["next_kf"]
+        missed = crossed & (s["keyframe_error_w"].mean(-1) > self.cfg.sampling.success_threshold_m)
+        self.keyframe_missed = self.keyframe_missed | missed
         self.prev_action2, self.prev_action = self.prev_action, action
         self.prev_joint_vel = s["joint_vel"]
         self.obs_history, self.privileged, self.odometry = self._observe_fn(s["gravity"], odometry_noise)
@@ -448,10 +452,19 @@ class TrackingEnv:
         self.episodes_terminated = self.episodes_terminated + terminated.sum()
         if bool(done.any()):
             ended = done.nonzero().squeeze(-1)
-            tested = ended[self.start_frame[ended] < self.first_edit_frame]
-            self.sampler.record(tested, self.sample[tested], terminated[tested])
+            self._record_psi_outcomes(ended, s)
             self._reset_worlds(ended)
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
+
+    def _record_psi_outcomes(self, ended: torch.Tensor, s: dict) -> None:
+        """Tells the ψ sampler how the episodes that met the edit ended (`SamplingConfig.judge`)."""
+        tested = ended[self.start_frame[ended] < self.first_edit_frame]
+        if self.cfg.sampling.judge == "termination":
+            self.sampler.record(tested, self.sample[tested], s["terminated"][tested])
+            return
+        failed = s["by_tilt"][tested] | s["by_height"][tested] | self.keyframe_missed[tested]
+        judged = failed | s["truncated"][tested]
+        self.sampler.record(tested[judged], self.sample[tested[judged]], failed[judged])
 
     def _score(self, qpos, qvel, site_pos, site_quat, torque, foot_contact, action):
         """Rewards and terminations of every world after the physics step, as one pure tensor function
@@ -542,7 +555,8 @@ class TrackingEnv:
     # Per-world buffers that, with the physics state and the per-world model, decide every future step.
     _STATE_BUFFERS = ("phase", "frame", "sample", "next_kf", "episode_step", "prev_action", "prev_action2",
                       "prev_joint_vel", "odometry", "odom_origin", "odom_origin_quat", "obs_history",
-                      "privileged", "target_history", "delay_lag", "delay_substeps", "push_timer", "start_frame")
+                      "privileged", "target_history", "delay_lag", "delay_substeps", "push_timer", "start_frame",
+                      "keyframe_missed")
 
     def _model_fields(self) -> list[str]:
         """The MjModel fields this env writes per world: the randomiser's and the terrain's."""
@@ -587,6 +601,8 @@ class TrackingEnv:
         buffers = dict(state["buffers"])
         if "start_frame" not in buffers:  # states saved before it existed; exact at stage 1's fixed phase rate
             buffers["start_frame"] = (buffers["frame"] - buffers["episode_step"]).clamp(min=0)
+        if "keyframe_missed" not in buffers:  # states saved before it existed: only the ψ sampler reads it
+            buffers["keyframe_missed"] = torch.zeros_like(self.keyframe_missed)
         for name in self._STATE_BUFFERS:
             saved = buffers[name]
             current = getattr(self, name)
@@ -716,6 +732,7 @@ class TrackingEnv:
         self.sample[ids] = sample
         self.frame[ids] = frame
         self.start_frame[ids] = frame
+        self.keyframe_missed[ids] = False
         self.phase[ids] = frame.to(torch.float64) / (self.num_frames - 1)
         self.next_kf[ids] = torch.searchsorted(self.kf_frames, frame, right=True)
         self.episode_step[ids] = 0

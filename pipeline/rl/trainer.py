@@ -279,6 +279,7 @@ class Trainer:
             sampler = getattr(self.env, "sampler", None)
             if sampler is not None and sampler.cfg.mode == "curriculum":
                 stats["psi_level"] = sampler.mean_level()
+                stats["psi_level_success"] = [round(v, 4) for v in sampler.level_success.tolist()]  # history only
             self.history.append(stats)
             if writer is not None:
                 for k, v in stats.items():
