@@ -83,12 +83,24 @@ def test_curriculum_level_success_rates_by_hand():
     sampler = SampleSampler(SamplingConfig(mode="curriculum", levels=3, level_rate=0.1), psi, 1.1, num_worlds=4)
     assert sampler.level_success.tolist() == [0.0, 0.0, 0.0]
     sampler.level[:] = torch.tensor([0, 0, 1, 2])
-    # level 0: two episodes, one success (one step of 0.2 towards 0.5); level 1: a fall; level 2: a success
+    # first episodes are averaged plainly: level 0 two episodes, one success; level 1 a fall; level 2 a success
     sampler.record(torch.tensor([0, 1, 2, 3]), torch.tensor([0, 1, 5, 3]), torch.tensor([False, True, True, False]))
-    assert sampler.level_success.tolist() == pytest.approx([0.2 * 0.5, 0.0, 0.1])
+    assert sampler.level_success.tolist() == pytest.approx([0.5, 0.0, 1.0])
+    assert sampler.level_episodes.tolist() == [2, 1, 1]
+    # level 0's third to tenth episodes: a mean over all ten (1/level_rate), successes 1 + 8
+    for _ in range(2):
+        sampler.level[:] = 0  # successes move the worlds up: put them back
+        sampler.record(torch.arange(4), torch.zeros(4, dtype=torch.long), torch.zeros(4, dtype=torch.bool))
+    assert sampler.level_success[0] == pytest.approx(9 / 10)
+    # after that an EMA of step 0.1 per episode: a fall moves 0.9 to 0.9 - 0.1 * 0.9
+    sampler.level[:] = 0
+    sampler.record(torch.tensor([0]), torch.tensor([0]), torch.tensor([True]))
+    assert sampler.level_success[0] == pytest.approx(0.81)
+    assert sampler.level_success[1:].tolist() == pytest.approx([0.0, 1.0])
     restored = SampleSampler(SamplingConfig(mode="curriculum", levels=3), psi, 1.1, num_worlds=4)
     restored.load_state_dict(sampler.state_dict())
     assert torch.equal(restored.level_success, sampler.level_success)
+    assert torch.equal(restored.level_episodes, sampler.level_episodes)
 
 
 def test_relative_demotion_ignores_falls_the_bottom_level_has_too():
@@ -97,6 +109,7 @@ def test_relative_demotion_ignores_falls_the_bottom_level_has_too():
     sampler = SampleSampler(cfg, psi, 1.1, num_worlds=3)
     # the bottom succeeds 40 % of the time, level 1 35 % (within 0.8 of it), level 2 20 % (below)
     sampler.level_success = torch.tensor([0.4, 0.35, 0.2], dtype=torch.float64)
+    sampler.level_episodes[:] = 1e9  # long measured: these episodes hardly move the rates
     sampler.level[:] = torch.tensor([0, 1, 2])
     sampler.record(torch.arange(3), torch.tensor([0, 2, 3]), torch.tensor([True, True, True]))
     assert sampler.level.tolist() == [0, 1, 1]  # only the fall at the measurably harder level 2 counts
@@ -112,6 +125,7 @@ def test_relative_demotion_ignores_falls_the_bottom_level_has_too():
     fresh = SampleSampler(cfg, psi, 1.1, num_worlds=2)
     fresh.level[:] = torch.tensor([1, 2])
     fresh.level_success = torch.tensor([0.0, 0.0, 0.3], dtype=torch.float64)
+    fresh.level_episodes[:] = 1e9
     fresh.record(torch.arange(2), torch.tensor([2, 3]), torch.tensor([True, True]))
     assert fresh.level.tolist() == [0, 2]
 

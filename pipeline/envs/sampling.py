@@ -47,8 +47,10 @@ class SampleSampler:
         self.level_table = torch.as_tensor(table, device=device)
         self.level_size = torch.as_tensor([len(g) for g in groups], device=device)
         self.level = torch.zeros(num_worlds, dtype=torch.long, device=device)
-        # curriculum: each level's running success rate over the episodes recorded there (0 until measured)
+        # curriculum: each level's running success rate over the episodes recorded there (0 until measured),
+        # a plain mean over its first 1/level_rate episodes (an EMA from 0 would read a new level as failing)
         self.level_success = torch.zeros(levels, dtype=torch.float64, device=device)
+        self.level_episodes = torch.zeros(levels, dtype=torch.float64, device=device)
         self.num_worlds = num_worlds
         self.episodes_drawn = torch.zeros(num_worlds, dtype=torch.long, device=device)  # sweep: per world
 
@@ -90,7 +92,7 @@ class SampleSampler:
             self.failure_rate = running_rate(self.failure_rate, samples, failed, self.cfg.rate)
         elif self.cfg.mode == "curriculum":
             level, top = self.level[worlds], self.num_levels - 1
-            self.level_success = running_rate(self.level_success, level, ~failed, self.cfg.level_rate)
+            self.level_success = running_rate(self.level_success, level, ~failed, self.cfg.level_rate, self.level_episodes)
             demoted = failed
             if self.cfg.demotion == "relative":
                 demoted = failed & (self.level_success[level] <= self.cfg.relative_ratio * self.level_success[0])
@@ -103,7 +105,7 @@ class SampleSampler:
         """Curriculum progress in [0, 1]: the worlds' mean level over the top level."""
         return float(self.level.double().mean()) / (self.num_levels - 1) if self.num_levels > 1 else 0.0
 
-    _STATE = ("failure_rate", "level", "level_success", "episodes_drawn")
+    _STATE = ("failure_rate", "level", "level_success", "level_episodes", "episodes_drawn")
 
     def state_dict(self) -> dict:
         return {name: getattr(self, name).detach().cpu().clone() for name in self._STATE}
@@ -119,10 +121,16 @@ class SampleSampler:
             setattr(self, name, saved.to(current.device, current.dtype).clone())
 
 
-def running_rate(rate: torch.Tensor, index: torch.Tensor, outcome: torch.Tensor, step: float) -> torch.Tensor:
+def running_rate(rate: torch.Tensor, index: torch.Tensor, outcome: torch.Tensor, step: float,
+                 episodes: torch.Tensor | None = None) -> torch.Tensor:
     """`rate` (one entry per sample or level) after the episodes `index` ended with `outcome` (bool):
-    one EMA step of size `step` per episode; several episodes of one entry in one call count together."""
+    one EMA step of size `step` per episode; several episodes of one entry in one call count together.
+    With `episodes` (each entry's count so far, updated in place) an entry's first 1/step episodes are
+    averaged plainly instead, so its rate does not start biased towards its initial value."""
     count = torch.zeros_like(rate).index_add_(0, index, torch.ones_like(index, dtype=rate.dtype))
     hits = torch.zeros_like(rate).index_add_(0, index, outcome.to(rate.dtype))
     weight = (step * count).clamp(max=1.0)
+    if episodes is not None:
+        episodes += count
+        weight = torch.maximum(weight, count / episodes.clamp(min=1.0))
     return torch.where(count > 0, rate + weight * (hits / count.clamp(min=1) - rate), rate)
