@@ -170,6 +170,28 @@ def test_only_episodes_that_met_the_edit_are_recorded(data):  # noqa: F811
     assert env.start_frame[:2].tolist() == [0, 0]  # both restarted at t = 0 (no RSI)
 
 
+def test_uniform_share_rehearses_every_level_without_moving_the_walk():
+    psi = np.array([1.0, 1.1, 1.5, 0.5, 2.0, 0.8])  # levels {1, 0} {5, 2} {3, 4}
+    sampler = SampleSampler(SamplingConfig(mode="curriculum", levels=3, uniform_share=0.25), psi, 1.1, num_worlds=4000)
+    torch.manual_seed(0)
+    drawn = sampler.draw(torch.arange(4000))  # every world at the bottom level {0, 1}
+    away = ~torch.isin(drawn, torch.tensor([0, 1]))
+    assert sampler.rehearsing.double().mean() == pytest.approx(0.25, abs=0.02)
+    assert bool(sampler.rehearsing[away].all())  # only uniform draws leave the world's level
+    assert away.double().mean() == pytest.approx(0.25 * 4 / 6, abs=0.02)
+    # their outcomes count for the level of the sample drawn, but the worlds stay where they are
+    rehearsed = torch.nonzero(sampler.rehearsing & (drawn == 4)).squeeze(-1)[:3]
+    sampler.record(rehearsed, drawn[rehearsed], torch.tensor([False, False, True]))
+    assert sampler.level_success.tolist() == pytest.approx([0.0, 0.0, 2 / 3])
+    assert sampler.level[rehearsed].tolist() == [0, 0, 0]
+    walked = torch.nonzero(~sampler.rehearsing).squeeze(-1)[:2]
+    sampler.record(walked, drawn[walked], torch.tensor([False, True]))
+    assert sampler.level[walked].tolist() == [1, 0]
+    restored = SampleSampler(SamplingConfig(mode="curriculum", levels=3, uniform_share=0.25), psi, 1.1, num_worlds=4000)
+    restored.load_state_dict(sampler.state_dict())
+    assert torch.equal(restored.rehearsing, sampler.rehearsing)
+
+
 def test_success_test_judges_episodes_as_the_evaluation_does(data):  # noqa: F811
     # keyframe targets 0, 0.5 and 1.5 m ahead of a robot that stands still; a keyframe-error termination
     # at 0.3 m (max over bodies) ends the last two at the first keyframe
@@ -251,6 +273,7 @@ def test_evaluation_scores_every_psi_alike():
                                       ({"relative_ratio": 0.0}, "sampling.relative_ratio"),
                                       ({"level_rate": 1.5}, "sampling.level_rate"),
                                       ({"judge": "falls"}, "sampling.judge"),
+                                      ({"uniform_share": -0.1}, "sampling.uniform_share"),
                                       ({"success_threshold_m": 0.0}, "sampling.success_threshold_m")])
 def test_bad_sampling_values_name_the_key(raw, key):
     with pytest.raises(PipelineInputError, match=key.replace(".", r"\.")):

@@ -197,6 +197,9 @@ class SamplingConfig:
     demotion: str = "every_fall"
     relative_ratio: float = 0.8
     level_rate: float = 0.02  # EMA step of each level's success rate per recorded episode
+    # curriculum: share of draws taken uniformly over all samples instead of from the world's level, so the
+    # levels the walk has not reached are still met now and then (0: none, legged_gym's rule)
+    uniform_share: float = 0.0
     # curriculum and adaptive: what makes an episode that met the edit a failure. "termination": any
     # termination. "success_test": the evaluation's test, a fall or a keyframe whose body-mean error is
     # over `success_threshold_m`; an episode that the keyframe-error termination (a training device,
@@ -291,6 +294,8 @@ class EnvConfig:
             bad("sampling.relative_ratio", "must be in (0, 1]")
         if not 0.0 < self.sampling.level_rate <= 1.0:
             bad("sampling.level_rate", "must be in (0, 1]")
+        if not 0.0 <= self.sampling.uniform_share <= 1.0:
+            bad("sampling.uniform_share", "must be in [0, 1]")
         if self.sampling.judge not in ("termination", "success_test"):
             bad("sampling.judge", f"must be 'termination' or 'success_test', got {self.sampling.judge!r}")
         if not self.sampling.success_threshold_m > 0.0:

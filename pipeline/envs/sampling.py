@@ -45,8 +45,12 @@ class SampleSampler:
         for row, group in zip(table, groups):
             row[:len(group)] = group
         self.level_table = torch.as_tensor(table, device=device)
+        self.sample_level = torch.zeros(self.num_samples, dtype=torch.long, device=device)
+        for index, group in enumerate(groups):
+            self.sample_level[torch.as_tensor(group, device=device)] = index
         self.level_size = torch.as_tensor([len(g) for g in groups], device=device)
         self.level = torch.zeros(num_worlds, dtype=torch.long, device=device)
+        self.rehearsing = torch.zeros(num_worlds, dtype=torch.bool, device=device)  # drawn by `uniform_share`
         # curriculum: each level's running success rate over the episodes recorded there (0 until measured),
         # a plain mean over its first 1/level_rate episodes (an EMA from 0 would read a new level as failing)
         self.level_success = torch.zeros(levels, dtype=torch.float64, device=device)
@@ -82,7 +86,12 @@ class SampleSampler:
             return sample
         level = self.level[worlds]
         slot = (torch.rand(n, device=self.device) * self.level_size[level]).long()
-        return self.level_table[level, slot]
+        drawn = self.level_table[level, slot]
+        if self.cfg.uniform_share <= 0.0:  # no draws at all: the same random stream as before the option
+            return drawn
+        anywhere = torch.rand(n, device=self.device) < self.cfg.uniform_share
+        self.rehearsing[worlds] = anywhere
+        return torch.where(anywhere, torch.randint(self.num_samples, (n,), device=self.device), drawn)
 
     def record(self, worlds: torch.Tensor, samples: torch.Tensor, failed: torch.Tensor) -> None:
         """Episodes that tested the edit and ended this step: their world, sample and whether they failed."""
@@ -91,8 +100,12 @@ class SampleSampler:
         if self.cfg.mode == "adaptive":
             self.failure_rate = running_rate(self.failure_rate, samples, failed, self.cfg.rate)
         elif self.cfg.mode == "curriculum":
+            # an episode counts towards its sample's level; one drawn uniformly does not move its world
+            self.level_success = running_rate(self.level_success, self.sample_level[samples], ~failed,
+                                              self.cfg.level_rate, self.level_episodes)
+            walking = ~self.rehearsing[worlds]
+            worlds, failed = worlds[walking], failed[walking]
             level, top = self.level[worlds], self.num_levels - 1
-            self.level_success = running_rate(self.level_success, level, ~failed, self.cfg.level_rate, self.level_episodes)
             demoted = failed
             if self.cfg.demotion == "relative":
                 demoted = failed & (self.level_success[level] <= self.cfg.relative_ratio * self.level_success[0])
@@ -105,7 +118,7 @@ class SampleSampler:
         """Curriculum progress in [0, 1]: the worlds' mean level over the top level."""
         return float(self.level.double().mean()) / (self.num_levels - 1) if self.num_levels > 1 else 0.0
 
-    _STATE = ("failure_rate", "level", "level_success", "level_episodes", "episodes_drawn")
+    _STATE = ("failure_rate", "level", "level_success", "level_episodes", "rehearsing", "episodes_drawn")
 
     def state_dict(self) -> dict:
         return {name: getattr(self, name).detach().cpu().clone() for name in self._STATE}
