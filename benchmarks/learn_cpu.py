@@ -279,8 +279,13 @@ def main() -> None:
             cells.append(fmt.format(value) if not (isinstance(value, float) and value != value) else "nan".rjust(len(name)))
         print("  ".join(c.rjust(len(n)) for c, (n, _, _) in zip(cells, cols)))
     if "psi_level_success" in history[-1]:
-        print("[learn_cpu] ψ curriculum at the end, running success by level (bottom = nearest the clip's ψ): "
-              + " ".join(f"{v:.2f}" for v in history[-1]["psi_level_success"]))
+        rates, sides = history[-1]["psi_level_success"], history[-1].get("psi_level_side")
+        if sides is None:
+            text = " ".join(f"{v:.2f}" for v in rates)
+        else:
+            text = " | ".join(f"{name}: " + " ".join(f"{v:.2f}" for v, s in zip(rates, sides) if s == side)
+                              for side, name in enumerate(("shorter", "farther")) if side in sides)
+        print("[learn_cpu] ψ curriculum at the end, running success by level (bottom = nearest the clip's ψ): " + text)
     print(f"[learn_cpu] run dir {out} (training_curve.png, metrics.json)")
     train_success = metrics.get("success_rate") or 0.0
     ev, episodes = evaluate_from_start(out / "policy", data, env_cfg)

@@ -103,6 +103,46 @@ def test_curriculum_level_success_rates_by_hand():
     assert torch.equal(restored.level_episodes, sampler.level_episodes)
 
 
+def test_split_sides_walk_each_side_of_the_clip_apart():
+    # shorter side (ψ < 1.1): |Δ| 0.1, 0.6, 0.3 for samples 0, 3, 5 -> levels {0, 5} {3}
+    # farther side: |Δ| 0, 0.4, 0.9 for samples 1, 2, 4 -> levels {1, 2} {4}; rows 0-1 short, 2-3 far
+    psi = np.array([1.0, 1.1, 1.5, 0.5, 2.0, 0.8])
+    cfg = SamplingConfig(mode="curriculum", levels=2, split_sides=True)
+    sampler = SampleSampler(cfg, psi, 1.1, num_worlds=6)
+    assert sampler.level_side == [0, 0, 1, 1]
+    assert [sorted(sampler.level_table[l, :sampler.level_size[l]].tolist()) for l in range(4)] == [[0, 5], [3], [1, 2], [4]]
+    assert sampler.level.tolist() == [0, 0, 0, 2, 2, 2]  # three samples a side: three worlds a side
+    torch.manual_seed(0)
+    assert set(sampler.draw(torch.full((500,), 3)).tolist()) == {1, 2}
+
+    # successes climb within the side, a fall at a side's bottom stays there
+    sampler.record(torch.tensor([0, 1, 3, 4]), torch.tensor([0, 5, 1, 2]), torch.tensor([False, True, False, True]))
+    assert sampler.level.tolist() == [1, 0, 0, 3, 2, 2]
+    assert set(sampler.draw(torch.full((500,), 3)).tolist()) == {4}
+    assert sampler.mean_level() == pytest.approx(2 / 6)
+    sampler.record(torch.tensor([3]), torch.tensor([4]), torch.tensor([True]))
+    assert sampler.level.tolist() == [1, 0, 0, 2, 2, 2]  # down to the far side's bottom, not below it
+    # finishing a side's top level restarts the world on its own side
+    seen_short, seen_far = set(), set()
+    for _ in range(60):
+        sampler.level[0], sampler.level[3] = 1, 3
+        sampler.record(torch.tensor([0, 3]), torch.tensor([3, 4]), torch.tensor([False, False]))
+        seen_short.add(int(sampler.level[0]))
+        seen_far.add(int(sampler.level[3]))
+    assert seen_short == {0, 1} and seen_far == {2, 3}
+    # `relative` compares a level with its own side's bottom
+    rel = SampleSampler(dataclasses.replace(cfg, demotion="relative", level_rate=1e-6), psi, 1.1, num_worlds=6)
+    rel.level_success = torch.tensor([0.9, 0.8, 0.3, 0.25], dtype=torch.float64)
+    rel.level_episodes[:] = 1e9
+    rel.level[:] = torch.tensor([1, 1, 1, 3, 3, 3])
+    rel.record(torch.tensor([0, 3]), torch.tensor([3, 4]), torch.tensor([True, True]))
+    assert rel.level.tolist() == [1, 1, 1, 3, 3, 3]  # 0.8 > 0.8 * 0.9, 0.25 > 0.8 * 0.3 (not 0.9)
+    # a range on one side of the clip has one side's levels, the pooled walk's
+    one_sided = SampleSampler(cfg, np.array([1.1, 1.3, 1.6, 2.0]), 1.1, num_worlds=3)
+    assert one_sided.level_side == [0, 0] and one_sided.level.tolist() == [0, 0, 0]
+    assert one_sided.top_level.tolist() == [1, 1, 1]
+
+
 def test_relative_demotion_ignores_falls_the_bottom_level_has_too():
     psi = np.array([1.0, 1.1, 1.5, 0.5, 2.0, 0.8])
     cfg = SamplingConfig(mode="curriculum", levels=3, demotion="relative", relative_ratio=0.8, level_rate=1e-6)

@@ -188,6 +188,11 @@ class SamplingConfig:
     uniform_ratio: float = 0.2  # adaptive: share of draws that stay uniform
     rate: float = 0.05  # adaptive: EMA step of a sample's failure rate per finished episode
     levels: int = 8  # curriculum: groups of samples by edit size (fewer samples: one level each)
+    # curriculum: levels per side of ψ_raw, each world on one side (worlds shared out by the sides'
+    # sample counts). Pooled, a level holds a short and a far gap of the same |ψ − ψ_raw|; at the end
+    # of a far-jump run every level succeeds 40–50 % while the far gaps read 0–10 % in evaluation
+    # and the short ones 75–100 %, so the walk says nothing about the far side.
+    split_sides: bool = False
     # curriculum: which falls send a world one level down. "every_fall": any failed episode (legged_gym's
     # rule). "relative": only where the world's level succeeds at most `relative_ratio` times as often as
     # the bottom level (the clip's own neighbourhood): falls that happen as often at the bottom come from

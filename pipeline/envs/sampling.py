@@ -7,7 +7,9 @@ curriculum that widens ψ outwards from the clip's own value, or an even sweep f
 * curriculum — legged_gym's terrain curriculum over edit size: the samples are ranked by |ψ − ψ_raw|
   and cut into `levels` groups; each world draws from its own level, goes one up after an episode it
   finishes and one down after a fall, and a world that finishes the top level restarts at a random
-  one so the whole range stays rehearsed. Worlds then gather where the policy is just failing, which
+  one so the whole range stays rehearsed. With `split_sides` the samples short of ψ_raw and those
+  beyond it have levels of their own and each world walks one side: pooled, a level's short gaps
+  (which the policy mostly lands) move its worlds up while its far ones fail. Worlds then gather where the policy is just failing, which
   uniform draws over a wide range (most of it out of reach or already solved) rarely visit. Each level
   keeps a running success rate; with `demotion: relative` a fall only sends a world down where its
   level succeeds clearly less often than the bottom level does, so the falls every level shares (the
@@ -38,23 +40,43 @@ class SampleSampler:
         self.failure_rate = torch.ones(self.num_samples, dtype=torch.float64, device=device)
         # curriculum: level l owns samples level_table[l, :level_size[l]] (ranked by edit size); a dataset
         # with fewer samples than levels gets one level per sample
-        levels = min(cfg.levels, self.num_samples)
-        ranked = np.argsort(np.abs(np.asarray(psi, dtype=np.float64) - psi_raw), kind="stable")
-        groups = np.array_split(ranked, levels)
-        table = np.zeros((levels, max(len(g) for g in groups)), dtype=np.int64)
+        # with `split_sides` the shorter and the farther side of ψ_raw get levels of their own (side 0's
+        # first), and each world walks one side, as legged_gym's robots each walk one terrain type
+        psi = np.asarray(psi, dtype=np.float64)
+        offset = np.abs(psi - psi_raw)
+        if cfg.split_sides:
+            sides = [side for side in (np.flatnonzero(psi < psi_raw), np.flatnonzero(psi >= psi_raw)) if len(side)]
+        else:
+            sides = [np.arange(self.num_samples)]
+        groups, level_side = [], []
+        for side_index, side in enumerate(sides):
+            ranked = side[np.argsort(offset[side], kind="stable")]
+            side_groups = np.array_split(ranked, min(cfg.levels, len(side)))
+            groups += side_groups
+            level_side += [side_index] * len(side_groups)
+        table = np.zeros((len(groups), max(len(g) for g in groups)), dtype=np.int64)
         for row, group in zip(table, groups):
             row[:len(group)] = group
         self.level_table = torch.as_tensor(table, device=device)
+        self.level_side = level_side  # the side each level belongs to (0 throughout unless split)
         self.sample_level = torch.zeros(self.num_samples, dtype=torch.long, device=device)
         for index, group in enumerate(groups):
             self.sample_level[torch.as_tensor(group, device=device)] = index
         self.level_size = torch.as_tensor([len(g) for g in groups], device=device)
-        self.level = torch.zeros(num_worlds, dtype=torch.long, device=device)
+        # each world's side, its worlds in proportion to the side's samples; a world's walk is bounded
+        # by its side's bottom and top level
+        bounds = np.round(np.cumsum([len(side) for side in sides]) / self.num_samples * num_worlds)
+        world_side = np.searchsorted(bounds, np.arange(num_worlds), side="right")
+        first = np.searchsorted(level_side, np.arange(len(sides)))
+        last = np.searchsorted(level_side, np.arange(len(sides)), side="right") - 1
+        self.bottom_level = torch.as_tensor(first[world_side], device=device)
+        self.top_level = torch.as_tensor(last[world_side], device=device)
+        self.level = self.bottom_level.clone()
         self.rehearsing = torch.zeros(num_worlds, dtype=torch.bool, device=device)  # drawn by `uniform_share`
         # curriculum: each level's running success rate over the episodes recorded there (0 until measured),
         # a plain mean over its first 1/level_rate episodes (an EMA from 0 would read a new level as failing)
-        self.level_success = torch.zeros(levels, dtype=torch.float64, device=device)
-        self.level_episodes = torch.zeros(levels, dtype=torch.float64, device=device)
+        self.level_success = torch.zeros(len(groups), dtype=torch.float64, device=device)
+        self.level_episodes = torch.zeros(len(groups), dtype=torch.float64, device=device)
         self.num_worlds = num_worlds
         self.episodes_drawn = torch.zeros(num_worlds, dtype=torch.long, device=device)  # sweep: per world
 
@@ -105,18 +127,20 @@ class SampleSampler:
                                               self.cfg.level_rate, self.level_episodes)
             walking = ~self.rehearsing[worlds]
             worlds, failed = worlds[walking], failed[walking]
-            level, top = self.level[worlds], self.num_levels - 1
+            level, bottom, top = self.level[worlds], self.bottom_level[worlds], self.top_level[worlds]
             demoted = failed
             if self.cfg.demotion == "relative":
-                demoted = failed & (self.level_success[level] <= self.cfg.relative_ratio * self.level_success[0])
-            moved = torch.where(demoted, (level - 1).clamp(min=0), torch.where(failed, level, (level + 1).clamp(max=top)))
+                demoted = failed & (self.level_success[level] <= self.cfg.relative_ratio * self.level_success[bottom])
+            moved = torch.where(demoted, torch.maximum(level - 1, bottom),
+                                torch.where(failed, level, torch.minimum(level + 1, top)))
             graduated = ~failed & (level == top)
-            restart = torch.randint(self.num_levels, (worlds.numel(),), device=self.device)
+            restart = bottom + (torch.rand(worlds.numel(), device=self.device) * (top - bottom + 1)).long()
             self.level[worlds] = torch.where(graduated, restart, moved)
 
     def mean_level(self) -> float:
-        """Curriculum progress in [0, 1]: the worlds' mean level over the top level."""
-        return float(self.level.double().mean()) / (self.num_levels - 1) if self.num_levels > 1 else 0.0
+        """Curriculum progress in [0, 1]: the worlds' mean height on their side's levels."""
+        height = (self.level - self.bottom_level).double() / (self.top_level - self.bottom_level).clamp(min=1)
+        return float(height.mean())
 
     _STATE = ("failure_rate", "level", "level_success", "level_episodes", "rehearsing", "episodes_drawn")
 

@@ -280,6 +280,8 @@ class Trainer:
             if sampler is not None and sampler.cfg.mode == "curriculum":
                 stats["psi_level"] = sampler.mean_level()
                 stats["psi_level_success"] = [round(v, 4) for v in sampler.level_success.tolist()]  # history only
+                if sampler.cfg.split_sides:
+                    stats["psi_level_side"] = list(sampler.level_side)  # 0: short of the clip's ψ, 1: beyond
             self.history.append(stats)
             if writer is not None:
                 for k, v in stats.items():
