@@ -191,7 +191,9 @@ class SamplingConfig:
     # curriculum: levels per side of ψ_raw, each world on one side (worlds shared out by the sides'
     # sample counts). Pooled, a level holds a short and a far gap of the same |ψ − ψ_raw|; at the end
     # of a far-jump run every level succeeds 40–50 % while the far gaps read 0–10 % in evaluation
-    # and the short ones 75–100 %, so the walk says nothing about the far side.
+    # and the short ones 75–100 %, so the walk says nothing about the far side. Opt-in: split, the far
+    # side's rates fall 0.53 -> 0 with ψ as they should, but learn_cpu read the same (0.781 / 0.656
+    # against 0.859 / 0.594 pooled, both with relax_from 0.6; benchmarks/RESULTS.md, session 25).
     split_sides: bool = False
     # curriculum: which falls send a world one level down. "every_fall": any failed episode (legged_gym's
     # rule). "relative": only where the world's level succeeds at most `relative_ratio` times as often as
