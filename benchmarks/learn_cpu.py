@@ -6,10 +6,11 @@ before take-off to after landing), selects keyframes, builds D_edit and trains
 stage 1 (variant adamimic_stage1, cpu profile) against the real TrackingEnv until the time budget.
 Prints the training curve, where success is the trainer's (stochastic policy, randomised worlds,
 half the episodes from a reference state): no termination and a mean body error <= 1 m at every
-keyframe, and the ψ curriculum's running success by level at the end. Then evaluates the final policy as the evaluate stage does (deterministic, from t = 0 over
-the whole segment, no randomisation, 128 episodes), prints its success by ψ bin, and ends with that
-success: `success=<s> minutes=<m>`. The same episodes are also scored on the paper's easy and hard ranges,
-and keyframe by keyframe (the share that reached each one and the mean error there: where episodes are lost).
+keyframe, and the ψ curriculum's running success by level at the end. Then evaluates the final
+policy as the evaluate stage does (deterministic, from t = 0 over the whole segment, no
+randomisation, 128 episodes), prints its success by ψ bin, and ends with that success: `success=<s>
+minutes=<m>`. The same episodes are also scored on the paper's easy and hard ranges, and keyframe by
+keyframe (the share that reached each one and the mean error there: where episodes are lost).
 
 2-core machines differ (one stepped the env 2.4 times slower than another), so 20 minutes buy different
 amounts of training there. `--iterations N` trains a fixed count instead, with no time limit and the

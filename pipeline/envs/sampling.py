@@ -9,11 +9,12 @@ curriculum that widens ψ outwards from the clip's own value, or an even sweep f
   finishes and one down after a fall, and a world that finishes the top level restarts at a random
   one so the whole range stays rehearsed. With `split_sides` the samples short of ψ_raw and those
   beyond it have levels of their own and each world walks one side: pooled, a level's short gaps
-  (which the policy mostly lands) move its worlds up while its far ones fail. Worlds then gather where the policy is just failing, which
-  uniform draws over a wide range (most of it out of reach or already solved) rarely visit. Each level
-  keeps a running success rate; with `demotion: relative` a fall only sends a world down where its
-  level succeeds clearly less often than the bottom level does, so the falls every level shares (the
-  randomisation's, the exploration's) do not hold the walk at the bottom.
+  (which the policy mostly lands) move its worlds up while its far ones fail. Worlds then gather
+  where the policy is just failing, which uniform draws over a wide range (most of it out of reach
+  or already solved) rarely visit. Each level keeps a running success rate; with `demotion:
+  relative` a fall only sends a world down where its level succeeds clearly less often than the
+  bottom level does, so the falls every level shares (the randomisation's, the exploration's) do not
+  hold the walk at the bottom.
 * sweep — evaluation: world w's k-th episode tracks sample (w + k·worlds) mod samples, so the samples
   are scored equally often and two policies meet the same ψ values. Uniform draws leave the ψ mix to
   chance (and to when each policy's episodes end), which moved a score by ±4 points over 128 episodes.
