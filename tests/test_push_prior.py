@@ -66,7 +66,7 @@ class _StubJumps:
             if feet < 0.9:
                 out.append(None)
                 continue
-            out.append(Jump(feet_m=feet, pelvis_m=feet, takeoff_s=0.3, landing_s=0.6, tilt=0.1, pitch_rate=0.0,
+            out.append(Jump(feet_m=feet, landing_x=feet, pelvis_m=feet, takeoff_s=0.3, landing_s=0.6, tilt=0.1, pitch_rate=0.0,
                             lowest_pelvis_m=MIN_FLIGHT_PELVIS_M - (0.001 if feet > self.landable_up_to_m else 0.0),
                             apex_pelvis_m=0.8, capture_outside_m=0.0, fall_check_excess=0.0))
         return out
@@ -227,3 +227,87 @@ def test_the_stage_writes_the_prior_and_the_edited_variants_train_with_it(tmp_pa
     edited = _tracking_data(params, "far_jump_sample", "adamimic")
     assert edited.push_prior is not None and edited.push_prior.joint_offsets.shape[0] == edited.motion.num_frames
     assert _tracking_data(params, "far_jump_sample", "deepmimic_noadapt").push_prior is None
+
+
+
+
+FAR_JUMP = REPO_ROOT.parent / "shared" / "data" / "adamimic_smpl" / "far_jump.npz"
+
+
+def zero_action_landings(data, prior, num_envs: int = 8):
+    """Rolls out the pushed zero action (no randomisation, episodes from t = 0), one world per swept ψ
+    sample. Returns (ψ, where each world's rear ankle touched down after its first flight of at least
+    0.1 s (NaN: it never did), where the reference's rear ankle lands unedited)."""
+    import dataclasses
+
+    import torch
+
+    from pipeline.envs.config import EnvConfig
+    from pipeline.envs.tracking_env import TrackingEnv
+    from pipeline.priors.push_prior import flight_frames
+
+    data = dataclasses.replace(data, push_prior=prior)
+    cfg = EnvConfig.from_dict({"randomization": {"enabled": False}, "rsi_prob": 0.0, "sampling": {"mode": "sweep"}})
+    env = TrackingEnv(cfg, data, num_envs=num_envs)
+    env.reset()
+    psi = data.psi[env.sample.numpy()]
+    _, landing = flight_frames(data)
+    ankles = [data.motion.body_index("left_ankle"), data.motion.body_index("right_ankle")]
+    airborne_steps = np.zeros(num_envs, dtype=int)
+    landed_x = np.full(num_envs, np.nan)
+    ended = np.zeros(num_envs, dtype=bool)
+    zero = torch.zeros(num_envs, env.action_dim)
+    for _ in range(data.motion.num_frames):
+        _, _, terminated, truncated, _ = env.step(zero)
+        contact = np.asarray(env.backend.foot_contact).any(-1)
+        rear_x = np.asarray(env.backend.site_pos)[:, env.feet_idx.numpy(), 0].min(-1)
+        touched = ~ended & np.isnan(landed_x) & contact & (airborne_steps * env.control_dt >= 0.1)
+        landed_x[touched] = rear_x[touched]
+        airborne_steps = np.where(contact, 0, airborne_steps + 1)
+        ended |= (terminated | truncated).numpy()
+        if (ended | ~np.isnan(landed_x)).all():
+            break
+    return psi, landed_x, float(data.motion.body_pos[landing, ankles, 0].min())
+
+
+def test_the_pushed_zero_action_lands_where_the_edit_moves_the_landing(sample_data, sample_prior):
+    """w(ψ) is read where the gap and the keyframes are laid out: in the env, each world whose ψ the
+    prior reaches lands its rear ankle about ψ − ψ_raw past the reference's landing (the search measured
+    its jumps from the reference's state, the env's episodes start earlier and arrive a little apart)."""
+    psi, landed_x, reference_landing_x = zero_action_landings(sample_data, sample_prior)
+    reachable = psi <= sample_prior.psi_anchors[-1]
+    assert reachable.sum() >= 2
+    expected = reference_landing_x + np.maximum(psi, sample_prior.psi_anchors[0]) - sample_data.psi_raw
+    np.testing.assert_allclose(landed_x[reachable], expected[reachable], atol=0.08)
+
+
+@pytest.mark.skipif(not FAR_JUMP.is_file(), reason="../shared/data/adamimic_smpl not present")
+def test_the_far_jumps_prior_measures_its_jumps_where_the_env_lands_them():
+    """On the shared far jump the robot takes off 0.15-0.2 m behind the reference's feet. A prior that
+    measured ψ by the feet's flight (as it once did) read every jump that much longer than where it
+    lands, so each pushed world landed at the gap's far edge, short of its target. Here each world of
+    the env replays exactly one of the search's measured rollouts (w held constant, on flat ground) and
+    its landing must be the ψ the prior recorded for it."""
+    import dataclasses
+
+    from pipeline.human.importers import load_human_motion
+    from pipeline.keyframes.config import TerrainConfig, load_tasks, load_yaml_strict
+    from pipeline.keyframes.edit import build_tracking_data
+    from pipeline.keyframes.select import select_keyframes
+    from pipeline.retarget import RetargetConfig, retarget
+
+    task = load_tasks(load_yaml_strict(REPO_ROOT / "pipeline" / "keyframes" / "paper_tasks.yaml")["tasks"])["far_jump"]
+    task = dataclasses.replace(task, terrain=TerrainConfig(kind="flat"))
+    motion, _ = retarget(load_human_motion(FAR_JUMP), RetargetConfig(), fps_out=50, progress=False)
+    takeoff, _ = select_keyframes(motion, task).flights[0]
+    segment = motion.slice(takeoff - 25, takeoff + 51)  # 0.5 s before the take-off (the prior's window) to 1 s after
+    data = build_tracking_data(segment, task, select_keyframes(segment, task), "edit", 2, 0)
+    prior = build_push_prior(data, PushPriorConfig(enabled=True, iterations=4, population=32), log=None)
+    for measured in (prior.summary["measured"][0], prior.summary["measured"][-1]):  # w = 0 and the strongest push
+        if measured["psi"] is None:
+            continue
+        w = measured["w"]
+        held = PushPrior(prior.joint_offsets, np.array([0.0, 10.0]), np.array([w, w]), prior.joint_names)
+        _, landed_x, reference_landing_x = zero_action_landings(data, held, num_envs=2)
+        np.testing.assert_allclose(landed_x, reference_landing_x + measured["psi"] - data.psi_raw, atol=0.03,
+                                   err_msg=f"w = {w}")

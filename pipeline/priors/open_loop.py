@@ -7,8 +7,7 @@ linear in time, on five channels shared by both sides of the body (hip pitch, kn
 shoulder pitch, elbow): a push-off and an arm swing, the degrees of freedom a longer jump needs.
 
 Each rollout is measured over its first flight of at least 0.1 s (`Jump`): how far the feet travel
-(the rear ankle at touch-down minus the front ankle at take-off, what a gap has to be narrower
-than), its timing, the trunk's tilt and pitch rate at touch-down, the pelvis's height in the air,
+(the rear ankle at touch-down minus the front ankle at take-off) and where the rear ankle lands, its timing, the trunk's tilt and pitch rate at touch-down, the pelvis's height in the air,
 where the capture point lies against the soles, and whether the training env's fall checks
 (`envs/config.py: TerminationConfig`, relative to the reference) hold until 0.1 s after the
 touch-down. `cross_entropy_search` finds the offsets that jump furthest within those limits.
@@ -40,6 +39,7 @@ SOLE_X = (-0.05, 0.13)      # heel and toe about the ankle (the G1's sole capsul
 @dataclass
 class Jump:
     feet_m: float           # rear ankle at touch-down minus front ankle at take-off
+    landing_x: float        # rear ankle at touch-down, x in the motion's frame (where the terrain and keyframes are)
     pelvis_m: float         # the pelvis's horizontal travel, take-off to touch-down
     takeoff_s: float        # from the window's start
     landing_s: float
@@ -194,6 +194,7 @@ class OpenLoopJumps:
                 continue
             gravity_xy = np.linalg.norm(quat.inverse_rotate(qpos[b, 3:7], DOWN)[:2])
             return Jump(feet_m=float(sites[b, self.ankles, 0].min() - sites[a - 1, self.ankles, 0].max()),
+                        landing_x=float(sites[b, self.ankles, 0].min()),
                         pelvis_m=float(np.linalg.norm(qpos[b, :2] - qpos[a - 1, :2])),
                         takeoff_s=float(a * self.dt), landing_s=float(b * self.dt), tilt=float(gravity_xy),
                         pitch_rate=float(qvel[b, 4]), lowest_pelvis_m=float(qpos[a:b, 2].min()),
@@ -205,12 +206,18 @@ class OpenLoopJumps:
 
 def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowance_m: float, iterations: int,
                          population: int, rng: np.random.Generator, fall_checks: bool = False,
-                         log=print, landable_only: bool = False) -> tuple[np.ndarray, Jump | None]:
-    """Maximises the feet's travel − penalty over the offsets; returns the best offsets and their jump
-    (None if no rollout flew at all). `fall_checks`: also penalise breaking the training env's fall checks.
+                         log=print, landable_only: bool = False,
+                         distance: str = "feet") -> tuple[np.ndarray, Jump | None]:
+    """Maximises distance − penalty over the offsets; returns the best offsets and their jump (None if
+    no rollout flew at all). `distance`: "feet", the feet's travel in the air (`Jump.feet_m`: what the
+    robot can jump), or "landing", where the rear foot lands (`Jump.landing_x`: what a gap anchored in
+    the motion's frame asks). `fall_checks`: also penalise breaking the training env's fall checks.
     `landable_only`: return the furthest jump with no penalty at all (None if there was none). Without
     it a jump that breaks a limit by a hair can outscore every landable one, as a score it is; a caller
     that needs a jump it can use asks for this."""
+    if distance not in ("feet", "landing"):
+        raise ValueError(f"distance must be 'feet' or 'landing', got {distance!r}")
+    reach = (lambda j: j.feet_m) if distance == "feet" else (lambda j: j.landing_x)
     shape = (len(CHANNELS), jumps.knots)
     mean, std = np.zeros(shape), np.full(shape, 0.4)
     elites = max(2, population // 10)
@@ -220,7 +227,7 @@ def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowan
         offsets = mean + std * rng.standard_normal((population, *shape))
         offsets[0] = best_offsets  # keep the best so far in every batch
         found = jumps.jumps(offsets)
-        scores = np.array([j.feet_m - j.penalty(land_by_s, capture_allowance_m, fall_checks) if j else -1.0 for j in found])
+        scores = np.array([reach(j) - j.penalty(land_by_s, capture_allowance_m, fall_checks) if j else -1.0 for j in found])
         order = np.argsort(-scores)
         for i in order:
             if scores[i] <= best_score:
@@ -233,7 +240,7 @@ def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowan
         mean = 0.3 * mean + 0.7 * elite.mean(axis=0)
         std = np.maximum(0.3 * std + 0.7 * elite.std(axis=0), 0.03)
         if log is not None and (it % 5 == 4 or it == iterations - 1):
-            best = f"{best_score:.2f} m of feet travel" if best_jump is not None else "none landable yet"
+            best = f"{reach(best_jump):.2f} m ({distance})" if best_jump is not None else "none landable yet"
             log(f"  iteration {it + 1:3d} ({time.time() - start:4.0f} s): best {best}, "
                 f"elite mean {scores[order[:elites]].mean():.2f} m")
     return best_offsets, best_jump

@@ -14,7 +14,11 @@ that push, scaled to each sample's ψ:
   touch-down: standing up from the landing stays the policy's job.
 * `w(ψ)` is measured, not assumed: the push is rolled out at w = 0, 0.025, …, 1.2, each rollout's
   jump turned into the ψ it reaches, and w(ψ) is the piecewise-linear inverse over the rollouts
-  that pass the fall checks (kept where ψ grows). Outside the measured ψ it holds the end values, so
+  that pass the fall checks (kept where ψ grows). A jump reaches ψ where its rear ankle lands as far
+  past the reference's landing as the edit moves it (ψ − ψ_raw): the gap and the keyframes sit in
+  the motion's frame, so how far the feet flew from wherever the robot took off is not what counts.
+  (Measured by the feet's travel instead, the far jump's priors took off 0.15–0.21 m behind the
+  reference and landed every pushed ψ at the gap's far edge, 0.15 m short of its target.) Outside the measured ψ it holds the end values, so
   gaps shorter than the zero action's own jump get no push and gaps past the furthest one get the
   largest that passed.
 
@@ -110,11 +114,10 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
     start = max(0, takeoff - int(round(LEAD_S * fps)))
     steps = min(motion.num_frames - 1 - start, landing - start + int(round(AFTER_LANDING_S * fps)))
     jumps = OpenLoopJumps(motion, robot, start, steps, knots=cfg.knots)
-    ankle_x = jumps.segment.body_pos[:, jumps.ankles, 0]
-    clip_feet = float(ankle_x[landing].min() - ankle_x[takeoff].max())
+    reference_landing_x = float(jumps.segment.body_pos[landing, jumps.ankles, 0].min())
 
-    def psi_of(jump) -> float:  # the edit moves the landing by ψ − ψ_raw: the feet must travel that much more
-        return float(data.psi_raw + jump.feet_m - clip_feet)
+    def psi_of(jump) -> float:  # the edit moves the landing by ψ − ψ_raw: the rear ankle must land that much further
+        return float(data.psi_raw + jump.landing_x - reference_landing_x)
 
     land_by = (landing - start) / fps + LAND_BY_SLACK_S
     allowance = jumps.reference_capture_outside(landing)
@@ -123,7 +126,7 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
         f"{cfg.iterations} iterations of {cfg.population} rollouts")
     offsets, jump = cross_entropy_search(jumps, land_by, allowance, cfg.iterations, cfg.population,
                                          np.random.default_rng(cfg.seed), fall_checks=True, log=log,
-                                         landable_only=True)
+                                         landable_only=True, distance="landing")
     if jump is None:
         raise PipelineInputError(f"task {data.task}", "push_prior",
                                  f"none of the search's {cfg.iterations} x {cfg.population} rollouts landed within "
