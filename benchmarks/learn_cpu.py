@@ -22,7 +22,7 @@ last line stays stage 1's, which is what the goal is about.
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M]
-        [--push-prior [--push-prior-knots K] | --push-prior-from DIR]
+        [--push-prior [--push-prior-knots K] [--push-prior-iterations N] | --push-prior-from DIR]
         [--set env.KEY=VALUE | train.KEY=VALUE ...]
 
 `--push-prior` first searches the task's push prior on the segment (priors/push_prior.py: an open-loop push,
@@ -201,13 +201,16 @@ def main() -> None:
                         help="train with the push prior an earlier --push-prior run saved (DIR/push_prior)")
     parser.add_argument("--push-prior-knots", type=int, default=None, metavar="K",
                         help="--push-prior's search with K knots per push curve (default: PushPriorConfig's, 12)")
+    parser.add_argument("--push-prior-iterations", type=int, default=None, metavar="N",
+                        help="--push-prior's search for N cross-entropy iterations (default: PushPriorConfig's, 40)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
     if args.iterations < 0:
         parser.error("--iterations: must be >= 0 (0: train for --minutes)")
-    if args.push_prior_knots is not None and not args.push_prior:
-        parser.error("--push-prior-knots: only with --push-prior (a saved prior keeps the knots it was searched with)")
+    for flag, value in (("--push-prior-knots", args.push_prior_knots), ("--push-prior-iterations", args.push_prior_iterations)):
+        if value is not None and not args.push_prior:
+            parser.error(f"{flag}: only with --push-prior (a saved prior keeps the search it came from)")
 
     import torch
 
@@ -233,8 +236,9 @@ def main() -> None:
                 raise SystemExit(f"--push-prior-from {args.push_prior_from}: its push_prior.json has no prior")
         else:
             t_prior = time.time()
-            knots = {} if args.push_prior_knots is None else {"knots": args.push_prior_knots}
-            prior_cfg = PushPriorConfig(enabled=True, **knots)
+            search = {key: value for key, value in (("knots", args.push_prior_knots),
+                                                    ("iterations", args.push_prior_iterations)) if value is not None}
+            prior_cfg = PushPriorConfig(enabled=True, **search)
             data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True))
             write_push_prior(out / "push_prior", data.push_prior)
             print(f"[learn_cpu] push prior searched in {(time.time() - t_prior) / 60:.1f} minutes (not counted in "
