@@ -1,7 +1,7 @@
 """A push prior: a zero action that already jumps each sample's gap, open loop.
 
 The feedforward zero action (`envs/feedforward.py`) replays the reference's own torques. On the
-shared far jump it jumps 0.39 m of ψ where the clip jumps 1.1 m and the task asks 0.2–2.0 m, so a
+shared far jump it lands at ψ 0.22 m where the clip jumps 1.1 m and the task asks 0.2–2.0 m, so a
 policy has to learn the whole push-off a longer gap needs from exploration noise, and 420 CPU
 iterations never taught one past 1.4 m (benchmarks/RESULTS.md). The prior gives the zero action
 that push, scaled to each sample's ψ:
