@@ -7,7 +7,8 @@ linear in time, on five channels shared by both sides of the body (hip pitch, kn
 shoulder pitch, elbow): a push-off and an arm swing, the degrees of freedom a longer jump needs.
 
 Each rollout is measured over its first flight of at least 0.1 s (`Jump`): how far the feet travel
-(the rear ankle at touch-down minus the front ankle at take-off) and where the rear ankle lands, its timing, the trunk's tilt and pitch rate at touch-down, the pelvis's height in the air,
+(the rear ankle at touch-down minus the front ankle at take-off) and where the rear ankle lands,
+its timing, the trunk's tilt and pitch rate at touch-down, the pelvis's height in the air,
 where the capture point lies against the soles, and whether the training env's fall checks
 (`envs/config.py: TerminationConfig`, relative to the reference) hold until 0.1 s after the
 touch-down. `cross_entropy_search` finds the offsets that jump furthest within those limits.

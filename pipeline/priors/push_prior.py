@@ -18,9 +18,9 @@ that push, scaled to each sample's ψ:
   past the reference's landing as the edit moves it (ψ − ψ_raw): the gap and the keyframes sit in
   the motion's frame, so how far the feet flew from wherever the robot took off is not what counts.
   (Measured by the feet's travel instead, the far jump's priors took off 0.15–0.21 m behind the
-  reference and landed every pushed ψ at the gap's far edge, 0.15 m short of its target.) Outside the measured ψ it holds the end values, so
-  gaps shorter than the zero action's own jump get no push and gaps past the furthest one get the
-  largest that passed.
+  reference and landed every pushed ψ at the gap's far edge, 0.15 m short of its target.) Outside
+  the measured ψ it holds the end values, so gaps shorter than the zero action's own jump get no push
+  and gaps past the furthest one get the largest that passed.
 
 The env adds it (`TrackingEnv._action_offset`), the exported graph adds it from the observed ψ
 (`export/onnx_export.py`), and the DVC stage `push_prior` writes it per task when the task asks for
@@ -116,7 +116,7 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
     jumps = OpenLoopJumps(motion, robot, start, steps, knots=cfg.knots)
     reference_landing_x = float(jumps.segment.body_pos[landing, jumps.ankles, 0].min())
 
-    def psi_of(jump) -> float:  # the edit moves the landing by ψ − ψ_raw: the rear ankle must land that much further
+    def psi_of(jump) -> float:  # the edit moves the landing by ψ − ψ_raw, so the rear ankle lands that much further
         return float(data.psi_raw + jump.landing_x - reference_landing_x)
 
     land_by = (landing - start) / fps + LAND_BY_SLACK_S
