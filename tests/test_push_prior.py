@@ -229,8 +229,6 @@ def test_the_stage_writes_the_prior_and_the_edited_variants_train_with_it(tmp_pa
     assert _tracking_data(params, "far_jump_sample", "deepmimic_noadapt").push_prior is None
 
 
-
-
 FAR_JUMP = REPO_ROOT.parent / "shared" / "data" / "adamimic_smpl" / "far_jump.npz"
 
 
@@ -303,9 +301,9 @@ def test_the_far_jumps_prior_measures_its_jumps_where_the_env_lands_them():
     segment = motion.slice(takeoff - 25, takeoff + 51)  # 0.5 s before the take-off (the prior's window) to 1 s after
     data = build_tracking_data(segment, task, select_keyframes(segment, task), "edit", 2, 0)
     prior = build_push_prior(data, PushPriorConfig(enabled=True, iterations=4, population=32), log=None)
-    for measured in (prior.summary["measured"][0], prior.summary["measured"][-1]):  # w = 0 and the strongest push
-        if measured["psi"] is None:
-            continue
+    zero, strongest = prior.summary["measured"][0], prior.summary["measured"][-1]
+    assert zero["w"] == 0.0 and zero["psi"] is not None, "the zero action's own jump must have been measured"
+    for measured in (zero, strongest) if strongest["psi"] is not None else (zero,):
         w = measured["w"]
         held = PushPrior(prior.joint_offsets, np.array([0.0, 10.0]), np.array([w, w]), prior.joint_names)
         _, landed_x, reference_landing_x = zero_action_landings(data, held, num_envs=2)
