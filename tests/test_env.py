@@ -618,3 +618,31 @@ def test_feedforward_holds_the_reference_where_the_bare_reference_sags(data):
         error[offset] = worst
     assert error["feedforward"] < 0.25 * error["reference"], error
     assert error["feedforward"] < 0.05, error  # measured: 0.25 rad around the bare reference, 0.034 with it
+
+
+def test_psi_scale_samples_pins_the_psi_input_at_the_samples_spread(data):
+    from pipeline.rl.networks import EmpiricalNormalizer
+    from pipeline.rl.trainer import pin_observation_stats
+
+    assert TrackingEnv(quiet_cfg(), data, num_envs=N).pinned_observation_stats() == []  # "running", the default
+    env = TrackingEnv(quiet_cfg(observations={"psi_scale": "samples"}), data, num_envs=N)
+    [(columns, mean, var)] = env.pinned_observation_stats()
+    start = env.obs_layout()["actor_frame"]["psi"][0]
+    assert columns == [h * FRAME_OBS_DIM + start for h in range(5)]
+    assert mean == pytest.approx(float(np.mean(data.psi))) and var == pytest.approx(float(np.var(data.psi)))
+    obs = env.reset()
+    for column in columns:
+        assert torch.allclose(obs["actor"][:, column], env.psi[env.sample])
+    actor, critic = EmpiricalNormalizer(env.actor_obs_dim), EmpiricalNormalizer(env.critic_obs_dim)
+    pin_observation_stats(env, [actor, critic])
+    # A curriculum shows one sample for a whole run: ψ keeps the samples' scale all the same.
+    one_sample = obs["actor"].clone()
+    one_sample[:, columns] = float(data.psi[0])
+    actor.update(one_sample)
+    critic.update(torch.cat([one_sample, obs["critic"][:, env.actor_obs_dim:]], dim=-1))
+    for norm in (actor, critic):
+        assert norm.mean[columns].tolist() == pytest.approx([mean] * 5)
+        assert norm.var[columns].tolist() == pytest.approx([var] * 5)
+    with pytest.raises(PipelineInputError, match="psi_scale"):
+        quiet_cfg(observations={"psi_scale": "fixed"}).validate()
+

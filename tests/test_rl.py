@@ -17,7 +17,7 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.rl.amp import AMPDiscriminator, reference_windows
 from pipeline.rl.checkpoint import load_policy, save_policy
 from pipeline.rl.config import VARIANTS, TrainConfig
-from pipeline.rl.networks import DoubleCritic, Stage1Policy
+from pipeline.rl.networks import DoubleCritic, EmpiricalNormalizer, Stage1Policy
 from pipeline.rl.ppo import gae
 from pipeline.rl.stage2 import Stage2Policy
 from pipeline.rl.trainer import Trainer, train_stage2
@@ -478,3 +478,25 @@ def test_l2c2_on_a_share_of_the_minibatch():
     assert seen == [(1.0, 96), (0.25, 21)]
     with pytest.raises(PipelineInputError, match="l2c2_fraction"):
         TrainConfig.from_dict({"ppo": {"l2c2_fraction": 0.0}})
+
+
+def test_pinned_normalizer_columns_hold_through_updates_and_a_reload():
+    norm = EmpiricalNormalizer(4)
+    norm.pin([1, 3], mean=1.1, var=0.25)
+    for _ in range(5):
+        norm.update(3.0 * torch.randn(200, 4) + 5.0)
+    assert norm.mean[[1, 3]].tolist() == pytest.approx([1.1, 1.1]) and norm.var[[1, 3]].tolist() == pytest.approx([0.25, 0.25])
+    assert norm.mean[[0, 2]].tolist() == pytest.approx([5.0, 5.0], abs=0.5)  # the rest still track the data
+    assert norm.var[[0, 2]].tolist() == pytest.approx([9.0, 9.0], rel=0.2)
+    # The mask is not saved, so checkpoints keep their keys; the pinned values travel in mean/var.
+    assert set(norm.state_dict()) == {"mean", "var", "count"}
+    reloaded = EmpiricalNormalizer(4)
+    reloaded.load_state_dict(norm.state_dict())
+    x = torch.randn(8, 4)
+    assert torch.equal(reloaded(x), norm(x))
+    # Pinning without values holds what the columns have now.
+    reloaded.pin([0])
+    before = float(reloaded.mean[0])
+    reloaded.update(torch.full((10, 4), -50.0))
+    assert float(reloaded.mean[0]) == before and float(reloaded.mean[2]) < before
+

@@ -91,6 +91,12 @@ class ObservationConfig:
     history: int = 5
     odometry_rate_hz: float = 10.0
     odometry_noise_std: float = 0.02  # m, Gaussian, per axis, at each refresh
+    # How the networks' normalisers scale the ψ input. "running": by its running statistics, as every
+    # other input; the ψ curriculum keeps its worlds within ~0.1 m of ψ_raw for most of a run, so ψ's
+    # running std ends near 0.08 m and the evaluation's 0.2 m and 2.0 m gaps reach the network at
+    # about ±7 normalised units, where training never went. "samples": fixed at the mean and
+    # variance of the task's ψ samples, the range the policy is asked to cover.
+    psi_scale: str = "running"
 
 
 @dataclass
@@ -277,6 +283,8 @@ class EnvConfig:
             bad("observations.odometry_rate_hz", "must be > 0")
         if self.observations.odometry_noise_std < 0:
             bad("observations.odometry_noise_std", "must be >= 0")
+        if self.observations.psi_scale not in ("running", "samples"):
+            bad("observations.psi_scale", f"must be 'running' or 'samples', got {self.observations.psi_scale!r}")
         if not 0.0 <= self.rsi_prob <= 1.0:
             bad("rsi_prob", "must be in [0, 1]")
         if self.rsi_frames not in ("stance", "keyframes"):

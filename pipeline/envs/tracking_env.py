@@ -317,6 +317,17 @@ class TrackingEnv:
         return {"history": self.cfg.observations.history, "frame_dim": FRAME_OBS_DIM,
                 "actor_frame": spans(names), "critic_privileged": spans(priv, self.actor_obs_dim)}
 
+    def pinned_observation_stats(self) -> list[tuple[list[int], float, float]]:
+        """[(actor columns, mean, variance)] the networks' normalisers hold fixed instead of
+        tracking (observations.psi_scale); the critic's observation starts with the actor's, so the
+        same columns serve both."""
+        if self.cfg.observations.psi_scale != "samples":
+            return []
+        start = self.obs_layout()["actor_frame"]["psi"][0]
+        columns = [h * FRAME_OBS_DIM + start for h in range(self.cfg.observations.history)]
+        psi = self.psi.double()
+        return [(columns, float(psi.mean()), float(psi.var(unbiased=False)))]
+
     def set_termination_threshold(self, value: float) -> float:
         c = self.cfg.terminations.keyframe_error
         self.termination_threshold = float(min(max(value, c.min), c.max))

@@ -32,7 +32,11 @@ def mlp(in_dim: int, hidden: list[int], out_dim: int, activation: str = "elu", o
 
 
 class EmpiricalNormalizer(nn.Module):
-    """Running mean/variance of observations (parallel Welford merge); buffers travel with the policy."""
+    """Running mean/variance of observations (parallel Welford merge); buffers travel with the policy.
+
+    `pin` fixes chosen columns' statistics: a task parameter the curriculum shows in a narrow band for
+    most of a run (ψ) would otherwise be scaled by that band, and the far values met at evaluation
+    would reach the network many standard deviations out (see TrackingEnv.pinned_observation_stats)."""
 
     def __init__(self, dim: int, eps: float = 1e-2, clip: float = 10.0, enabled: bool = True):
         super().__init__()
@@ -40,6 +44,18 @@ class EmpiricalNormalizer(nn.Module):
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("var", torch.ones(dim))
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        # Not saved: whoever builds the normaliser pins again; the pinned values travel in mean/var.
+        self.register_buffer("pinned", torch.zeros(dim, dtype=torch.bool), persistent=False)
+
+    @torch.no_grad()
+    def pin(self, columns: list[int], mean: float | None = None, var: float | None = None) -> None:
+        """Fixes `columns` at `mean` and `var` (None: at their current values) for every later update."""
+        index = torch.as_tensor(columns, dtype=torch.long, device=self.mean.device)
+        if mean is not None:
+            self.mean[index] = float(mean)
+        if var is not None:
+            self.var[index] = float(var)
+        self.pinned[index] = True
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
@@ -52,8 +68,11 @@ class EmpiricalNormalizer(nn.Module):
         total = self.count + n
         delta = batch_mean - self.mean
         frac = float(n / total)
+        keep_mean, keep_var = self.mean.clone(), self.var.clone()
         self.mean += delta * frac
         self.var.copy_(self.var * (1 - frac) + batch_var * frac + delta**2 * frac * (1 - frac))
+        self.mean.copy_(torch.where(self.pinned, keep_mean, self.mean))
+        self.var.copy_(torch.where(self.pinned, keep_var, self.var))
         self.count.copy_(total)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -482,6 +482,14 @@ def _seed(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def pin_observation_stats(env, normalizers, keep_values: bool = False) -> None:
+    """Holds the columns the env names (TrackingEnv.pinned_observation_stats) fixed in `normalizers`,
+    at the env's values or, with `keep_values`, at the ones they hold."""
+    for columns, mean, var in getattr(env, "pinned_observation_stats", lambda: [])():
+        for normalizer in normalizers:
+            normalizer.pin(columns, None if keep_values else mean, None if keep_values else var)
+
+
 def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, env=None,
                  iterations: int | None = None, time_limit_s: float | None = None, **trainer_kwargs) -> dict:
     variant: Variant = cfg.variant_spec
@@ -492,6 +500,7 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
     policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=variant.adaptive_phase_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
     critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
+    pin_observation_stats(env, [policy.normalizer, critic.normalizer])
     amp, amp_ref = None, None
     if variant.amp != "none":
         amp_ref = reference_windows(data.motion.joint_pos, cfg.amp.window, variant.amp == "mimic")
@@ -521,6 +530,9 @@ def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1
     policy = Stage2Policy(base, net.adapter_hidden, net.activation, net.adapter_init_log_std,
                           freeze_base=variant.freeze_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
     critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
+    pin_observation_stats(env, [policy.normalizer, critic.normalizer])
+    # An unfrozen base keeps the scale it was trained with: its pinned columns stay where they are.
+    pin_observation_stats(env, [base.normalizer], keep_values=True)
     meta = policy_meta(env, data, cfg, 2, phase_rate, freeze_base=variant.freeze_stage1)
     meta["architecture"]["actor_hidden"] = base_meta["architecture"]["actor_hidden"]
     meta["architecture"]["adaptive_phase"] = base_meta["architecture"].get("adaptive_phase", False)
