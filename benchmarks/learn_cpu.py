@@ -22,12 +22,14 @@ last line stays stage 1's, which is what the goal is about.
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M]
-        [--push-prior [--push-prior-knots K] [--push-prior-iterations N] | --push-prior-from DIR]
+        [--push-prior [--push-prior-knots K] [--push-prior-iterations N] | --no-push-prior | --push-prior-from DIR]
         [--set env.KEY=VALUE | train.KEY=VALUE ...]
 
-`--push-prior` first searches the task's push prior on the segment (priors/push_prior.py: an open-loop push,
-scaled per ψ, added to the zero action; minutes on 2 cores, reported apart from the training's time, as the
-keyframe stage's are) and trains and evaluates with it.
+On the far jump (any task whose edit lengthens the jump along +x) it first searches the task's push prior on
+the segment (priors/push_prior.py: an open-loop push, scaled per ψ, added to the zero action; about a minute
+on 2 cores, reported apart from the training's time, as the keyframe stage's are) and trains and evaluates
+with it; `--no-push-prior` trains without (the default until session 27), `--push-prior-from DIR` reuses the
+prior an earlier run saved.
 """
 
 from __future__ import annotations
@@ -194,13 +196,14 @@ def main() -> None:
                              "landing then lands instead of falling into the far jump's gap)")
     parser.add_argument("--stage2-minutes", type=float, default=0.0,
                         help="then train stage 2 on the stage-1 policy for this long and evaluate it too")
-    parser.add_argument("--push-prior", action="store_true",
+    parser.add_argument("--push-prior", action=argparse.BooleanOptionalAction, default=None,
                         help="search the task's push prior on this segment first (priors/push_prior.py, its time "
-                             "reported apart from training's) and train and evaluate with it; saved under --out")
+                             "reported apart from training's) and train and evaluate with it; saved under --out. "
+                             "Default: on where the task's edit lengthens the jump along +x (the far jump)")
     parser.add_argument("--push-prior-from", type=Path, default=None, metavar="DIR",
                         help="train with the push prior an earlier --push-prior run saved (DIR/push_prior)")
     parser.add_argument("--push-prior-knots", type=int, default=None, metavar="K",
-                        help="--push-prior's search with K knots per push curve (default: PushPriorConfig's, 12)")
+                        help="--push-prior's search with K knots per push curve (default: PushPriorConfig's, 20)")
     parser.add_argument("--push-prior-iterations", type=int, default=None, metavar="N",
                         help="--push-prior's search for N cross-entropy iterations (default: PushPriorConfig's, 40)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -208,6 +211,11 @@ def main() -> None:
     args = parser.parse_args()
     if args.iterations < 0:
         parser.error("--iterations: must be >= 0 (0: train for --minutes)")
+    if args.push_prior and args.push_prior_from:
+        parser.error("--push-prior-from: a saved prior instead of a search, not with --push-prior")
+    if args.push_prior is None:
+        edit = paper_task(args.motion).edit
+        args.push_prior = args.push_prior_from is None and edit.mode == "x" and edit.sign == 1.0
     for flag, value in (("--push-prior-knots", args.push_prior_knots), ("--push-prior-iterations", args.push_prior_iterations)):
         if value is not None and not args.push_prior:
             parser.error(f"{flag}: only with --push-prior (a saved prior keeps the search it came from)")

@@ -624,8 +624,9 @@ def test_psi_scale_samples_pins_the_psi_input_at_the_samples_spread(data):
     from pipeline.rl.networks import EmpiricalNormalizer
     from pipeline.rl.trainer import pin_observation_stats
 
-    assert TrackingEnv(quiet_cfg(), data, num_envs=N).pinned_observation_stats() == []  # "running", the default
-    env = TrackingEnv(quiet_cfg(observations={"psi_scale": "samples"}), data, num_envs=N)
+    running = TrackingEnv(quiet_cfg(observations={"psi_scale": "running"}), data, num_envs=N)
+    assert running.pinned_observation_stats() == []
+    env = TrackingEnv(quiet_cfg(), data, num_envs=N)  # "samples", the default
     [(columns, mean, var)] = env.pinned_observation_stats()
     start = env.obs_layout()["actor_frame"]["psi"][0]
     assert columns == [h * FRAME_OBS_DIM + start for h in range(5)]

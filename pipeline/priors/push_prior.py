@@ -57,10 +57,11 @@ class PushPriorConfig:
     iterations: int = 40
     population: int = 256
     seed: int = 0
-    # 12: a knot every 0.13 s. With 20 the same search within the fall checks reaches ψ 1.85–1.98 m on
-    # learn_cpu's far-jump segment against 1.58 m, yet the policies trained on that prior scored no better
-    # over three seeds and lower on the easy range (benchmarks/RESULTS.md, session 24).
-    knots: int = 12
+    # 20: a knot every 0.07 s. 12 reach ψ 1.58 m within the fall checks on learn_cpu's far-jump segment
+    # (read by the feet's travel, which overstates it by 0.15–0.2 m), short of the paper's 2 m; 20 reach
+    # 1.77 m read at the landing, and every learn_cpu run over the 0.9 goal trained on a 20-knot prior
+    # (benchmarks/RESULTS.md, sessions 24, 26 and 27).
+    knots: int = 20
 
 
 @dataclass
