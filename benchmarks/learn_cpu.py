@@ -203,7 +203,7 @@ def main() -> None:
     parser.add_argument("--push-prior-from", type=Path, default=None, metavar="DIR",
                         help="train with the push prior an earlier --push-prior run saved (DIR/push_prior)")
     parser.add_argument("--push-prior-knots", type=int, default=None, metavar="K",
-                        help="--push-prior's search with K knots per push curve (default: PushPriorConfig's, 20)")
+                        help="--push-prior's search with K knots per push curve (default 20; PushPriorConfig's is 12)")
     parser.add_argument("--push-prior-iterations", type=int, default=None, metavar="N",
                         help="--push-prior's search for N cross-entropy iterations (default: PushPriorConfig's, 40)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -244,8 +244,10 @@ def main() -> None:
                 raise SystemExit(f"--push-prior-from {args.push_prior_from}: its push_prior.json has no prior")
         else:
             t_prior = time.time()
-            search = {key: value for key, value in (("knots", args.push_prior_knots),
-                                                    ("iterations", args.push_prior_iterations)) if value is not None}
+            # 20 knots: every run over the goal trained on such a prior (benchmarks/RESULTS.md, sessions 26-27).
+            search = {"knots": 20 if args.push_prior_knots is None else args.push_prior_knots}
+            if args.push_prior_iterations is not None:
+                search["iterations"] = args.push_prior_iterations
             prior_cfg = PushPriorConfig(enabled=True, **search)
             data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True))
             write_push_prior(out / "push_prior", data.push_prior)
