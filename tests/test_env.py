@@ -646,4 +646,3 @@ def test_psi_scale_samples_pins_the_psi_input_at_the_samples_spread(data):
         assert norm.var[columns].tolist() == pytest.approx([var] * 5)
     with pytest.raises(PipelineInputError, match="psi_scale"):
         quiet_cfg(observations={"psi_scale": "fixed"}).validate()
-

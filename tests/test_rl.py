@@ -499,4 +499,3 @@ def test_pinned_normalizer_columns_hold_through_updates_and_a_reload():
     before = float(reloaded.mean[0])
     reloaded.update(torch.full((10, 4), -50.0))
     assert float(reloaded.mean[0]) == before and float(reloaded.mean[2]) < before
-

@@ -68,11 +68,10 @@ class EmpiricalNormalizer(nn.Module):
         total = self.count + n
         delta = batch_mean - self.mean
         frac = float(n / total)
-        keep_mean, keep_var = self.mean.clone(), self.var.clone()
-        self.mean += delta * frac
-        self.var.copy_(self.var * (1 - frac) + batch_var * frac + delta**2 * frac * (1 - frac))
-        self.mean.copy_(torch.where(self.pinned, keep_mean, self.mean))
-        self.var.copy_(torch.where(self.pinned, keep_var, self.var))
+        merged_mean = self.mean + delta * frac
+        merged_var = self.var * (1 - frac) + batch_var * frac + delta**2 * frac * (1 - frac)
+        self.mean.copy_(torch.where(self.pinned, self.mean, merged_mean))
+        self.var.copy_(torch.where(self.pinned, self.var, merged_var))
         self.count.copy_(total)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
