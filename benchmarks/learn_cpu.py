@@ -22,7 +22,8 @@ last line stays stage 1's, which is what the goal is about.
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M]
-        [--push-prior [--push-prior-knots K] [--push-prior-iterations N] | --no-push-prior | --push-prior-from DIR]
+        [--push-prior [--push-prior-knots K] [--push-prior-iterations N] [--push-prior-land-by-slack S]
+         | --no-push-prior | --push-prior-from DIR]
         [--set env.KEY=VALUE | train.KEY=VALUE ...]
 
 On the far jump (any task whose edit lengthens the jump along +x) it first searches the task's push prior on
@@ -206,6 +207,9 @@ def main() -> None:
                         help="--push-prior's search with K knots per push curve (default 20; PushPriorConfig's is 12)")
     parser.add_argument("--push-prior-iterations", type=int, default=None, metavar="N",
                         help="--push-prior's search for N cross-entropy iterations (default: PushPriorConfig's, 40)")
+    parser.add_argument("--push-prior-land-by-slack", type=float, default=None, metavar="S",
+                        help="--push-prior's search lets the touch-down come up to S s after the reference's landing "
+                             "(default: PushPriorConfig's)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
@@ -216,7 +220,8 @@ def main() -> None:
     if args.push_prior is None:
         edit = paper_task(args.motion).edit
         args.push_prior = args.push_prior_from is None and edit.mode == "x" and edit.sign == 1.0
-    for flag, value in (("--push-prior-knots", args.push_prior_knots), ("--push-prior-iterations", args.push_prior_iterations)):
+    for flag, value in (("--push-prior-knots", args.push_prior_knots), ("--push-prior-iterations", args.push_prior_iterations),
+                        ("--push-prior-land-by-slack", args.push_prior_land_by_slack)):
         if value is not None and not args.push_prior:
             parser.error(f"{flag}: only with --push-prior (a saved prior keeps the search it came from)")
 
@@ -248,6 +253,8 @@ def main() -> None:
             search = {"knots": 20 if args.push_prior_knots is None else args.push_prior_knots}
             if args.push_prior_iterations is not None:
                 search["iterations"] = args.push_prior_iterations
+            if args.push_prior_land_by_slack is not None:
+                search["land_by_slack_s"] = args.push_prior_land_by_slack
             prior_cfg = PushPriorConfig(enabled=True, **search)
             data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True))
             write_push_prior(out / "push_prior", data.push_prior)

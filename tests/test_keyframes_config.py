@@ -44,6 +44,15 @@ def test_minimal_task_gets_defaults():
     assert TaskConfig.from_dict("t2", {**MINIMAL, "edit": "z_apex"}).edit.keyframes == ("apex",)
 
 
+
+def test_push_prior_block_reads_every_key():
+    from pipeline.priors.push_prior import PushPriorConfig
+
+    assert _task().push_prior == PushPriorConfig() and not PushPriorConfig().enabled
+    raw = {"enabled": True, "iterations": 80, "population": 128, "seed": 3, "knots": 20, "land_by_slack_s": 0.1}
+    assert _task(push_prior=raw).push_prior == PushPriorConfig(**raw)
+
+
 def test_selectors_and_ranges_helpers():
     assert label_matches("landing", "landing_2") and label_matches("landing", "landing")
     assert not label_matches("landing_2", "landing_1") and not label_matches("landing", "")
@@ -67,6 +76,8 @@ def test_selectors_and_ranges_helpers():
     ({"keyframes": [{"time": 0.5}], "edit": {"mode": "x", "keyframes": [0.7]}}, "edit.keyframes", "does not exist"),
     ({"push_prior": {"enabled": True, "knots": 1}}, "push_prior.knots", ">= 2"),
     ({"push_prior": {"enabled": True, "iterations": 0}}, "push_prior.iterations", ">= 1"),
+    ({"push_prior": {"enabled": True, "land_by_slack_s": -0.1}}, "push_prior.land_by_slack_s", "[0, 0.5]"),
+    ({"push_prior": {"enabled": True, "land_by_slack_s": "late"}}, "push_prior.land_by_slack_s", "seconds"),
     ({"colour": "red"}, "", "unknown key"),
 ])
 def test_bad_task_names_task_and_field(changes, field, words):

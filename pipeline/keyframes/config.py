@@ -350,7 +350,7 @@ def _parse_push_prior(name: str, raw, edit: EditConfig) -> PushPriorConfig:
         return PushPriorConfig()
     if isinstance(raw, bool):
         raw = {"enabled": raw}
-    _check_keys(name, "push_prior", raw, {"enabled", "iterations", "population", "seed", "knots"})
+    _check_keys(name, "push_prior", raw, {"enabled", "iterations", "population", "seed", "knots", "land_by_slack_s"})
     enabled = raw.get("enabled", False)
     if not isinstance(enabled, bool):
         raise _err(name, "push_prior.enabled", f"must be true or false, got {enabled!r}")
@@ -360,9 +360,12 @@ def _parse_push_prior(name: str, raw, edit: EditConfig) -> PushPriorConfig:
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise _err(name, f"push_prior.{key}", f"must be an integer >= {low}, got {value!r}")
         counts[key] = value
+    slack = raw.get("land_by_slack_s", PushPriorConfig.land_by_slack_s)
+    if isinstance(slack, bool) or not isinstance(slack, (int, float)) or not 0.0 <= slack <= 0.5:
+        raise _err(name, "push_prior.land_by_slack_s", f"must be seconds in [0, 0.5], got {slack!r}")
     if enabled and (edit.mode != "x" or edit.sign != 1.0):
         raise _err(name, "push_prior.enabled", f"a push prior lengthens a jump along +x (edit mode x), not {edit.mode!r}")
-    return PushPriorConfig(enabled=enabled, **counts)
+    return PushPriorConfig(enabled=enabled, land_by_slack_s=float(slack), **counts)
 
 
 def _parse_task(name: str, raw: dict) -> TaskConfig:

@@ -41,7 +41,6 @@ from pipeline.common.errors import PipelineInputError
 
 LEAD_S = 0.5          # the window starts this long before the take-off (learn_cpu's segment does too)
 AFTER_LANDING_S = 0.6  # and ends this long after the reference's landing
-LAND_BY_SLACK_S = 0.04  # the search's touch-down may be this much later than the reference's
 FADE_S = 0.2           # the push fades to zero over this long after its touch-down
 WEIGHT_STEP, WEIGHT_MAX = 0.025, 1.2
 FILE_JSON, FILE_ARRAYS = "push_prior.json", "push_prior.npz"
@@ -63,6 +62,8 @@ class PushPriorConfig:
     # (benchmarks/RESULTS.md, sessions 24, 26 and 27). 20 is not the default here: with a tiny search on the
     # bundled sample its env landings strayed 0.12 m from the prior's (tests/test_push_prior.py), unexamined.
     knots: int = 12
+    # The search's touch-down may be this much later than the reference's landing (s).
+    land_by_slack_s: float = 0.04
 
 
 @dataclass
@@ -121,7 +122,7 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
     def psi_of(jump) -> float:  # the edit moves the landing by ψ − ψ_raw, so the rear ankle lands that much further
         return float(data.psi_raw + jump.landing_x - reference_landing_x)
 
-    land_by = (landing - start) / fps + LAND_BY_SLACK_S
+    land_by = (landing - start) / fps + cfg.land_by_slack_s
     allowance = jumps.reference_capture_outside(landing)
     began = time.time()
     log(f"push prior for {data.task}: frames {start}..{start + steps} (take-off {takeoff}, landing {landing}), "
@@ -157,7 +158,8 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
         "psi_raw": float(data.psi_raw), "psi_reached": psi_of(jump), "jump": str(jump),
         "zero_action_psi": psi_of(zero) if zero is not None else None,
         "max_abs_offset_rad": float(np.abs(table).max()), "search_seconds": round(time.time() - began, 1),
-        "config": {"iterations": cfg.iterations, "population": cfg.population, "seed": cfg.seed, "knots": cfg.knots},
+        "config": {"iterations": cfg.iterations, "population": cfg.population, "seed": cfg.seed, "knots": cfg.knots,
+                   "land_by_slack_s": cfg.land_by_slack_s},
         "measured": [{"w": float(w), "psi": psi_of(j) if j else None, "passes_fall_checks": ok}
                      for w, j, ok in zip(weights, measured, passes)],
     }
