@@ -44,7 +44,6 @@ def test_minimal_task_gets_defaults():
     assert TaskConfig.from_dict("t2", {**MINIMAL, "edit": "z_apex"}).edit.keyframes == ("apex",)
 
 
-
 def test_push_prior_block_reads_every_key():
     from pipeline.priors.push_prior import PushPriorConfig
 
