@@ -204,7 +204,8 @@ def main() -> None:
                              "reported apart from training's) and train and evaluate with it; saved under --out. "
                              "Default: on where the task's edit lengthens the jump along +x (the far jump)")
     parser.add_argument("--push-prior-from", type=Path, default=None, metavar="DIR",
-                        help="train with the push prior an earlier --push-prior run saved (DIR/push_prior)")
+                        help="train with the push prior an earlier --push-prior run saved: its run directory "
+                             "or the push_prior directory it printed")
     parser.add_argument("--push-prior-knots", type=int, default=None, metavar="K",
                         help="--push-prior's search with K knots per push curve (default 20; PushPriorConfig's is 12)")
     parser.add_argument("--push-prior-iterations", type=int, default=None, metavar="N",
@@ -245,7 +246,11 @@ def main() -> None:
         from pipeline.robot.g1 import load_robot_config
 
         if args.push_prior_from:
-            data.push_prior = load_push_prior(args.push_prior_from / "push_prior", data.motion.num_frames,
+            # Either the run's --out or the directory the run printed as "saved to": both name the same prior.
+            prior_dir = args.push_prior_from
+            if not (prior_dir / "push_prior.json").exists():
+                prior_dir = prior_dir / "push_prior"
+            data.push_prior = load_push_prior(prior_dir, data.motion.num_frames,
                                               load_robot_config().joint_names)
             if data.push_prior is None:
                 raise SystemExit(f"--push-prior-from {args.push_prior_from}: its push_prior.json has no prior")
