@@ -20,8 +20,13 @@ With `--stage2-minutes M`, stage 2 (variant adamimic: phase and tracking adapter
 policy, episodes from t = 0) then trains for M more minutes and is evaluated on the same episodes; the
 last line stays stage 1's, which is what the goal is about.
 
+With `--snapshots K`, stage 1 saves a checkpoint every `--snapshot-every N` iterations (default 10) and keeps
+the last K; each is then evaluated on the same episodes, and so is the mean of their weights (observation
+normalisers included) over the last 3, 5, ... K of them: how much a run's result depends on where it stops,
+and whether averaging its tail steadies it (benchmarks/RESULTS.md, session 30).
+
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
-        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M]
+        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M] [--snapshots K [--snapshot-every N]]
         [--push-prior [--push-prior-knots K] [--push-prior-iterations N] [--push-prior-land-by-slack S]
          | --no-push-prior | --push-prior-from DIR]
         [--set env.KEY=VALUE | train.KEY=VALUE ...]
@@ -112,6 +117,32 @@ def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 128) ->
     return aggregate(per_episode), per_episode
 
 
+def average_weights(snapshots: list[Path], out: Path) -> Path:
+    """A policy directory whose every floating-point tensor is the mean over `snapshots` (the last one's config)."""
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    states = [load_file(path / "model.safetensors") for path in snapshots]
+    mean = {key: (sum(state[key].double() for state in states) / len(states)).to(value.dtype)
+            if value.is_floating_point() else value for key, value in states[-1].items()}
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copy(snapshots[-1] / "config.json", out / "config.json")
+    save_file(mean, out / "model.safetensors")
+    return out
+
+
+def evaluate_snapshots(run_dir: Path, count: int, data, env_cfg) -> None:
+    snapshots = sorted((run_dir / "checkpoints").glob("iter_*"))[-count:]
+    print(f"[learn_cpu] the last {len(snapshots)} checkpoints, and their weight averages, on the same episodes:")
+    sizes = [k for k in range(3, len(snapshots), 2)] + [len(snapshots)] if len(snapshots) > 1 else []
+    candidates = [(path.name, path) for path in snapshots]
+    candidates += [(f"mean of last {k}", average_weights(snapshots[-k:], run_dir / "averaged" / f"last_{k}")) for k in sizes]
+    for label, path in candidates:
+        ev, episodes = evaluate_from_start(path, data, env_cfg)
+        print(f"[learn_cpu]   {label}: success {ev['success'] / 100:.3f} | {success_by_psi(episodes)}", flush=True)
+
+
 def success_by_psi(episodes: list, bins: int = 6) -> str:
     """`0.20-0.50 1.00 (n=21, reached 0.76) | ...`: where in the ψ range the policy succeeds, and the mean ψ its
     episodes reached there (PsiReach: where the robot was at the landing keyframe), which says how closely its jump
@@ -199,6 +230,10 @@ def main() -> None:
                              "landing then lands instead of falling into the far jump's gap)")
     parser.add_argument("--stage2-minutes", type=float, default=0.0,
                         help="then train stage 2 on the stage-1 policy for this long and evaluate it too")
+    parser.add_argument("--snapshots", type=int, default=0, metavar="K",
+                        help="keep stage 1's last K checkpoints and evaluate each, and their weight averages, too")
+    parser.add_argument("--snapshot-every", type=int, default=10, metavar="N",
+                        help="--snapshots: iterations between the kept checkpoints")
     parser.add_argument("--push-prior", action=argparse.BooleanOptionalAction, default=None,
                         help="search the task's push prior on this segment first (priors/push_prior.py, its time "
                              "reported apart from training's) and train and evaluate with it; saved under --out. "
@@ -218,6 +253,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.iterations < 0:
         parser.error("--iterations: must be >= 0 (0: train for --minutes)")
+    if args.snapshots < 0 or args.snapshot_every < 1:
+        parser.error("--snapshots: must be >= 0, and --snapshot-every >= 1")
     if args.push_prior and args.push_prior_from:
         parser.error("--push-prior-from: a saved prior instead of a search, not with --push-prior")
     if args.push_prior is None:
@@ -274,7 +311,8 @@ def main() -> None:
     # Sized by time (0 iterations train until the limit, and the curricula follow the clock) or by count.
     overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": args.iterations,
                                       "time_limit_stage1_s": 0.0 if args.iterations else args.minutes * 60.0,
-                                      "save_interval": 50}}
+                                      "save_interval": args.snapshot_every if args.snapshots else 50,
+                                      "keep_checkpoints": max(2, args.snapshots)}}
     if args.envs:
         overrides["train"]["ppo"] = {"num_envs": args.envs}
     for item in args.set:
@@ -322,6 +360,8 @@ def main() -> None:
           f"success {train_success:.3f}")
     report(f"stage 1, evaluation from t = 0 (deterministic, no randomisation, {ev['episodes']} episodes)",
            ev, episodes, data)
+    if args.snapshots:
+        evaluate_snapshots(out, args.snapshots, data, env_cfg)
     if args.stage2_minutes > 0:
         from pipeline.rl.trainer import train_stage2
 
