@@ -118,17 +118,19 @@ def evaluate_from_start(policy_dir: Path, data, env_cfg, episodes: int = 128) ->
 
 
 def average_weights(snapshots: list[Path], out: Path) -> Path:
-    """A policy directory whose every floating-point tensor is the mean over `snapshots` (the last one's config)."""
+    """A policy directory holding the weight mean over `snapshots` (train.average_tail's mean, post hoc)."""
     import shutil
 
     from safetensors.torch import load_file, save_file
 
-    states = [load_file(path / "model.safetensors") for path in snapshots]
-    mean = {key: (sum(state[key].double() for state in states) / len(states)).to(value.dtype)
-            if value.is_floating_point() else value for key, value in states[-1].items()}
+    from pipeline.rl.averaging import WeightAverage
+
+    average = WeightAverage()
+    for path in snapshots:
+        average.add(load_file(path / "model.safetensors"))
     out.mkdir(parents=True, exist_ok=True)
     shutil.copy(snapshots[-1] / "config.json", out / "config.json")
-    save_file(mean, out / "model.safetensors")
+    save_file(average.mean(), out / "model.safetensors")
     return out
 
 

@@ -15,6 +15,7 @@ import torch
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.rl.amp import AMPDiscriminator, reference_windows
+from pipeline.rl.averaging import WeightAverage
 from pipeline.rl.checkpoint import load_policy, save_policy
 from pipeline.rl.config import VARIANTS, TrainConfig
 from pipeline.rl.networks import DoubleCritic, EmpiricalNormalizer, Stage1Policy
@@ -253,6 +254,48 @@ def test_resume_reproduces_the_next_iteration_bit_for_bit(tmp_path, noise_correl
         assert torch.equal(a, b)
     assert straight.ppo.learning_rate == resumed.ppo.learning_rate
     assert [h["policy_loss"] for h in straight.history] == [h["policy_loss"] for h in resumed.history]
+
+
+def test_weight_average_means_floats_and_keeps_the_latest_of_the_rest():
+    average = WeightAverage()
+    average.add({"w": torch.tensor([1.0, 2.0]), "n": torch.tensor(3)})
+    average.add({"w": torch.tensor([3.0, 6.0]), "n": torch.tensor(5)})
+    mean = average.mean()
+    assert torch.equal(mean["w"], torch.tensor([2.0, 4.0])) and mean["w"].dtype == torch.float32
+    assert mean["n"].item() == 5
+    with pytest.raises(ValueError, match="keys differ"):
+        average.add({"w": torch.zeros(2)})
+
+
+def test_average_tail_writes_the_mean_of_the_last_snapshots_and_survives_a_resume(tmp_path):
+    from safetensors.torch import load_file
+
+    cfg = small_cfg(save_interval=1, keep_checkpoints=4, average_tail=0.5, average_every=1,
+                    ppo={"num_envs": 16, "steps_per_iteration": 4, "epochs": 1, "minibatches": 1})
+    straight = _trainer(tmp_path / "a", cfg, seed=0)
+    straight.run(4)
+    # iterations 2, 3 and 4 end in the last half of the run; the live policy stays the last iteration's
+    snapshots = [load_file(tmp_path / "a" / "checkpoints" / f"iter_{i:06d}" / "model.safetensors") for i in (2, 3, 4)]
+    written = load_file(tmp_path / "a" / "policy" / "model.safetensors")
+    for key, value in written.items():
+        if key.startswith("policy.") and value.is_floating_point():
+            want = (sum(s[key].double() for s in snapshots) / 3).to(value.dtype)
+            assert torch.allclose(value, want, atol=1e-7), key
+    assert not torch.equal(written["policy.body.0.weight"], snapshots[-1]["policy.body.0.weight"])
+    assert json.loads((tmp_path / "a" / "policy" / "config.json").read_text())["averaged_snapshots"] == 3
+
+    interrupted = _trainer(tmp_path / "b", cfg, seed=0)
+    interrupted.run(3)  # killed after iteration 3's checkpoint, two snapshots into the average
+    _trainer(tmp_path / "b", cfg, seed=99).run(4, resume=True)
+    resumed = load_file(tmp_path / "b" / "policy" / "model.safetensors")
+    for key, value in written.items():
+        assert torch.equal(value, resumed[key]), key
+
+
+@pytest.mark.parametrize("bad", [{"average_tail": -0.1}, {"average_tail": 1.5}, {"average_every": 0}])
+def test_bad_average_settings_are_refused(bad):
+    with pytest.raises(PipelineInputError, match=next(iter(bad))):
+        small_cfg(**bad)
 
 
 def test_curricula_follow_iterations_not_the_clock(tmp_path, monkeypatch):

@@ -136,6 +136,11 @@ class TrainConfig:
     time_limit_stage2_s: float = 0.0
     save_interval: int = 25
     keep_checkpoints: int = 2
+    # The policy written at the end of a stage: 0 = the last iteration's weights; f > 0 = the mean of the
+    # policy's weights (normalisers included) taken every `average_every` iterations over the last f of
+    # the stage (pipeline/rl/averaging.py). Opt-in: three learn_cpu runs support it, post hoc (session 30).
+    average_tail: float = 0.0
+    average_every: int = 10
     ppo: PPOConfig = field(default_factory=PPOConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     amp: AMPConfig = field(default_factory=AMPConfig)
@@ -180,6 +185,8 @@ def _validate(cfg: TrainConfig, where: str) -> None:
         (cfg.time_limit_stage2_s >= 0, "time_limit_stage2_s", "must be >= 0 (0 = no limit)"),
         (cfg.save_interval > 0, "save_interval", "must be > 0"),
         (cfg.keep_checkpoints >= 1, "keep_checkpoints", "must be >= 1"),
+        (0.0 <= cfg.average_tail <= 1.0, "average_tail", "must be in [0, 1] (0: the last iteration's weights)"),
+        (cfg.average_every >= 1, "average_every", "must be >= 1"),
         (cfg.network.activation in ACTIVATIONS, "network.activation", f"one of {sorted(ACTIVATIONS)}"),
         (cfg.amp.window >= 2, "amp.window", "must be >= 2"),
         (all(h > 0 for h in cfg.network.actor_hidden + cfg.network.critic_hidden), "network", "layer sizes > 0"),

@@ -32,6 +32,7 @@ from tqdm import tqdm
 from pipeline.common.atomic import atomic_file, write_text_atomic
 from pipeline.common.errors import PipelineInputError
 from pipeline.rl.amp import AMPDiscriminator, JointWindow, reference_windows
+from pipeline.rl.averaging import WeightAverage
 from pipeline.rl.checkpoint import CheckpointManager, check_compatible, load_policy, read_meta, rng_state, save_policy, set_rng_state
 from pipeline.rl.config import TrainConfig, Variant
 from pipeline.rl.exploration import CorrelatedNoise
@@ -145,6 +146,7 @@ class Trainer:
         self.amp, self.amp_reference = amp, amp_reference
         self.use_phase_offset = use_phase_offset
         self.checkpoints = CheckpointManager(self.run_dir, cfg.keep_checkpoints)
+        self.average = WeightAverage() if cfg.average_tail > 0 else None
         self.stats = EpisodeStats(env.num_envs, self.device)
         # White noise (the paper's) is drawn inside policy.sample; correlated noise needs a state per world.
         self.noise = None
@@ -288,6 +290,10 @@ class Trainer:
                     if isinstance(v, (int, float)) and math.isfinite(v):
                         writer.add_scalar(f"stage{self.stage}/{k}", v, it + 1)
             bar.set_postfix(success=f"{stats.get('success_rate', float('nan')):.2f}", ret=f"{stats.get('return_sparse', float('nan')):.1f}")
+            if self.average is not None and (it + 1) % self.cfg.average_every == 0:
+                done = min((time.time() - t0) / time_limit_s, 1.0) if by_time else (it + 1) / iterations
+                if done >= 1.0 - self.cfg.average_tail:
+                    self.average.add(self.policy.state_dict())
             out_of_time = time_limit_s is not None and time_limit_s > 0 and time.time() - t0 > time_limit_s
             if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations or out_of_time:
                 self._save(it + 1, obs)
@@ -333,6 +339,8 @@ class Trainer:
             state["obs"] = {k: v.clone() for k, v in obs.items()}
         if self.noise is not None:
             state["noise"] = self.noise.state_dict()
+        if self.average is not None:
+            state["weight_average"] = self.average.state_dict()
         if self.amp is not None:
             state["amp"] = {"net": self.amp.state_dict(), "optimizer": self.amp.optimizer.state_dict(),
                             "window": self.joint_window.frames.clone(), "filled": self.joint_window.filled.clone()}
@@ -363,6 +371,8 @@ class Trainer:
             obs = state["obs"]
         if self.noise is not None and "noise" in state:
             self.noise.load_state_dict(state["noise"])
+        if self.average is not None and "weight_average" in state:
+            self.average.load_state_dict(state["weight_average"])
         if self.amp is not None and "amp" in state:
             self.amp.load_state_dict(state["amp"]["net"])
             self.amp.optimizer.load_state_dict(state["amp"]["optimizer"])
@@ -380,7 +390,14 @@ class Trainer:
         return SummaryWriter(str(self.run_dir / "tensorboard"))
 
     def _finish(self, iterations: int, stopped_by_time_limit: bool = False) -> dict:
-        save_policy(self.run_dir / "policy", self.policy, self.critic, dict(self.meta, iteration=iterations))
+        policy, meta = self.policy, dict(self.meta, iteration=iterations)
+        if self.average is not None and self.average.count:
+            policy = copy.deepcopy(self.policy)
+            policy.load_state_dict(self.average.mean())
+            meta["averaged_snapshots"] = self.average.count
+            self.log(f"[train] stage {self.stage}: the policy written is the mean of {self.average.count} snapshots, "
+                     f"every {self.cfg.average_every} iterations over the last {self.cfg.average_tail:.0%} of the stage")
+        save_policy(self.run_dir / "policy", policy, self.critic, meta)
         last = self.history[-1] if self.history else {}
         metrics = {"stage": self.stage, "variant": self.cfg.variant, "iterations": iterations,
                    "success_rate": last.get("success_rate"), "return_sparse": last.get("return_sparse"),
