@@ -1,8 +1,10 @@
 """The mean of a policy's weights over the end of a run (`train.average_tail`).
 
 Late in a stage the keyframe-error threshold relaxes and the policy keeps moving: on learn_cpu one run's
-checkpoints ten iterations apart read 0.875-0.984 from t = 0, while the mean of the last few read 0.95-0.98
-(benchmarks/RESULTS.md, session 30). Equal weights over snapshots taken every few iterations, as
+checkpoints ten iterations apart read 0.875-0.984 from t = 0, another's 0.828-0.969, so where a run stops
+decides its result by a few episodes. The mean of the last few snapshots read about the median snapshot or a
+little above it (0.95-0.98 and 0.875-0.89), not always above the last one (benchmarks/RESULTS.md, session
+30): a steadier result, not a better one. Equal weights over snapshots taken every few iterations, as
 stochastic weight averaging does; the observation normalisers are averaged with the layers, so the mean
 policy sees inputs scaled as its layers were on average.
 """

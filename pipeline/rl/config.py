@@ -138,7 +138,8 @@ class TrainConfig:
     keep_checkpoints: int = 2
     # The policy written at the end of a stage: 0 = the last iteration's weights; f > 0 = the mean of the
     # policy's weights (normalisers included) taken every `average_every` iterations over the last f of
-    # the stage (pipeline/rl/averaging.py). Opt-in: three learn_cpu runs support it, post hoc (session 30).
+    # the stage (pipeline/rl/averaging.py). Opt-in: on learn_cpu it read about a run's median snapshot, not
+    # always more than its last one (benchmarks/RESULTS.md, session 30).
     average_tail: float = 0.0
     average_every: int = 10
     ppo: PPOConfig = field(default_factory=PPOConfig)
