@@ -253,9 +253,14 @@ class Trainer:
         bar = tqdm(steps, initial=start, total=None if by_time else iterations, desc=f"stage {self.stage}",
                    disable=not self.progress, mininterval=2.0, file=sys.stderr)
         stopped_early = False
+
+        def fraction_done(iterations_done: int) -> float:
+            """How far through the stage: by the clock for a run sized by time, else by the count."""
+            return min((time.time() - t0) / time_limit_s, 1.0) if by_time else iterations_done / iterations
+
         for it in bar:
             obs = self._boundary(it, obs)
-            progress = min((time.time() - t0) / time_limit_s, 1.0) if by_time else it / iterations
+            progress = fraction_done(it)
             self._curriculum(progress)
             self.policy.train()
             collect_start = time.perf_counter()
@@ -291,8 +296,7 @@ class Trainer:
                         writer.add_scalar(f"stage{self.stage}/{k}", v, it + 1)
             bar.set_postfix(success=f"{stats.get('success_rate', float('nan')):.2f}", ret=f"{stats.get('return_sparse', float('nan')):.1f}")
             if self.average is not None and (it + 1) % self.cfg.average_every == 0:
-                done = min((time.time() - t0) / time_limit_s, 1.0) if by_time else (it + 1) / iterations
-                if done >= 1.0 - self.cfg.average_tail:
+                if fraction_done(it + 1) >= 1.0 - self.cfg.average_tail:
                     self.average.add(self.policy.state_dict())
             out_of_time = time_limit_s is not None and time_limit_s > 0 and time.time() - t0 > time_limit_s
             if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations or out_of_time:
