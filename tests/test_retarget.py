@@ -127,6 +127,34 @@ def test_bundled_sample_is_within_the_g1_motors(retargeted_sample):
     assert report["balance"]["zmp_inside_support_min_mm"] >= 0.0, report["balance"]
 
 
+def test_bundled_sample_flight_falls_slower_than_gravity(retargeted_sample):
+    """quality.json's `jump.gravity_m_s2`. The human sample flies as a projectile under 9.81 m/s²;
+    retargeting scales its heights by the robot's size (0.77) and keeps its timing, so the G1's
+    reference falls at about 0.77 × 9.81 (7.7), and the robot, which falls at 9.81, lands before the
+    reference does."""
+    _, report = retargeted_sample
+    assert report["jump"]["gravity_m_s2"] == pytest.approx(report["scale"] * 9.81, rel=0.05)
+
+
+def test_flight_gravity_fits_the_flight_only():
+    from pipeline.retarget.core import flight_gravity, jump_summary
+
+    fps, frames = 50.0, 60
+    t = np.arange(frames) / fps
+    contacts = np.ones((frames, 2), dtype=bool)
+    contacts[20:41] = False  # 21 frames in the air
+    com = np.zeros((frames, 3))
+    tau = t - t[20]
+    com[:, 2] = 0.7 + 1.5 * tau - 0.5 * 7.3 * tau**2
+    com[:20, 2] = 0.7  # on the ground: nothing to do with the flight's parabola
+    com[41:, 2] = 0.4
+    summary = jump_summary(np.zeros((frames, 3)), contacts, fps, com=com)
+    assert summary["gravity_m_s2"] == pytest.approx(7.3, rel=1e-9)
+    assert flight_gravity(com[20:23, 2], fps) is None  # too short to fit
+    assert jump_summary(np.zeros((frames, 3)), np.ones((frames, 2), bool), fps, com=com)["gravity_m_s2"] is None
+    assert "gravity_m_s2" not in jump_summary(np.zeros((frames, 3)), contacts, fps)
+
+
 def test_support_margin_sign():
     """Standing in the default pose the centre of mass is inside the feet; the same pose tilted 0.5 rad
     forward about the pelvis swings the feet ~0.3 m back under it, leaving the centre of mass outside."""

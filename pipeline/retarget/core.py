@@ -108,7 +108,7 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
         "max_contact_foot_float_mm": 1e3 * max(float_mm),
         "contact_fraction": [float(x) for x in out_contacts.mean(axis=0)],
         **joint_report(out, model),
-        "jump": jump_summary(out.root_pos, out_contacts, fps_out),
+        "jump": jump_summary(out.root_pos, out_contacts, fps_out, com=heights.center_of_mass(out)),
         "balance": balance_report(out, heights, out_contacts),
         "torque": torque_report(out, model, load_robot_config()),
         "human_jump_scaled": jump_summary(scale * human.joint_pos[:, 0], contacts, human.fps),
@@ -167,17 +167,34 @@ def _floor_correction(motion: Motion, heights: GeomHeights, contacts: np.ndarray
     return dz + np.maximum(0.0, -(lowest + dz))
 
 
-def jump_summary(root_pos: np.ndarray, contacts: np.ndarray, fps: float) -> dict:
+def jump_summary(root_pos: np.ndarray, contacts: np.ndarray, fps: float, com: np.ndarray | None = None) -> dict:
     """The longest flight phase (no foot in contact): horizontal distance of the root from
-    take-off to landing and its peak height above the take-off height."""
+    take-off to landing and its peak height above the take-off height. With the centre of mass
+    (T, 3), also the gravity its flight obeys (`flight_gravity`)."""
     flight = ~contacts.any(axis=1)
     phases = [(a, b) for a, b in contact_ops.runs(flight) if a > 0 and b < len(flight)]
     if not phases:
-        return {"distance_m": 0.0, "height_m": 0.0, "duration_s": 0.0}
+        summary = {"distance_m": 0.0, "height_m": 0.0, "duration_s": 0.0}
+        return summary if com is None else {**summary, "gravity_m_s2": None}
     a, b = max(phases, key=lambda ab: ab[1] - ab[0])
     start, end = root_pos[a - 1], root_pos[b]
-    return {
+    summary = {
         "distance_m": float(np.linalg.norm(end[:2] - start[:2])),
         "height_m": float(root_pos[a - 1 : b + 1, 2].max() - start[2]),
         "duration_s": float((b - a + 1) / fps),
     }
+    if com is not None:
+        summary["gravity_m_s2"] = flight_gravity(com[a:b, 2], fps)
+    return summary
+
+
+def flight_gravity(com_z: np.ndarray, fps: float) -> float | None:
+    """The downward acceleration (m/s², positive) of a flight's centre of mass: twice the leading
+    coefficient of a least-squares parabola through its heights. Why it is reported: the retargeting
+    scales the clip's distances to the robot, not its timing, so a flight keeps its duration while its
+    height shrinks, and falls at about scale × 9.81. The robot falls at 9.81: from the reference's
+    take-off it lands earlier, faster and lower than the reference does. None for under 4 frames."""
+    if len(com_z) < 4:
+        return None
+    t = np.arange(len(com_z)) / fps
+    return float(-2.0 * np.polyfit(t, com_z, 2)[0])

@@ -12,6 +12,12 @@ Definitions (all on the final 50 Hz motion unless said):
   max_penetration_mm        deepest point of any robot collision geom below z = 0.
   joint_limit_violations    number of (frame, joint) entries outside the model's joint range.
   max_joint_vel             largest |joint velocity| in rad/s (central differences at 50 Hz).
+  jump                      the longest flight: the root's distance and peak height, its duration, and the
+                            downward acceleration of the robot's centre of mass over it (gravity_m_s2, a
+                            least-squares parabola, retarget/core.py flight_gravity). Retargeting scales
+                            distances, not time, so a clip's flight falls at about scale x 9.81 on the robot
+                            (the bundled sample 7.7 at scale 0.77; the shared clips 4.8-8.1): the robot, which falls at
+                            9.81, lands earlier and faster than the reference from the same take-off.
   balance                   can the robot stand where the motion stands still? Over the frames with both
                             feet in contact and the whole-body centre of mass moving slowly (horizontal
                             speed < 0.3 m/s, acceleration < 1 m/s^2): how far its ground projection lies
@@ -99,12 +105,10 @@ class GeomHeights:
         hull of both feet's sole capsules on the ground plane (T,), negative outside, and the same for
         the zero-moment point of the centre of mass's path (T,), x - z x'' / (g + z'')."""
         model, data, soles = self.model, self.data, self.soles
-        com = np.empty((motion.num_frames, 3))
+        com = self.center_of_mass(motion)
         hulls = []
         for t in range(motion.num_frames):
             self._pose(motion, t)
-            mujoco.mj_comPos(model, data)
-            com[t] = data.subtree_com[0]
             # a capsule's segment ends (along its local z), widened by its radius below
             half = data.geom_xmat[soles].reshape(-1, 3, 3)[:, :2, 2] * model.geom_size[soles, 1:2]
             hulls.append(ConvexHull(np.concatenate([data.geom_xpos[soles, :2] + half, data.geom_xpos[soles, :2] - half])))
@@ -117,6 +121,15 @@ class GeomHeights:
         acc = smooth_acceleration(com, motion.dt)
         zmp = com[:, :2] - com[:, 2:3] * acc[:, :2] / (GRAVITY + acc[:, 2:3])
         return {"com": com, "inside": inside(com[:, :2]), "zmp_inside": inside(zmp)}
+
+    def center_of_mass(self, motion: Motion) -> np.ndarray:
+        """(T, 3) the whole robot's centre of mass per frame."""
+        com = np.empty((motion.num_frames, 3))
+        for t in range(motion.num_frames):
+            self._pose(motion, t)
+            mujoco.mj_comPos(self.model, self.data)
+            com[t] = self.data.subtree_com[0]
+        return com
 
     def _pose(self, motion: Motion, i: int) -> None:
         """Kinematics of frame i into self.data."""
