@@ -136,6 +136,27 @@ def test_bundled_sample_flight_falls_slower_than_gravity(retargeted_sample):
     assert report["jump"]["gravity_m_s2"] == pytest.approx(report["scale"] * 9.81, rel=0.05)
 
 
+def test_froude_time_scale_flies_under_gravity(retargeted_sample):
+    """`time_scale: froude` plays the clip sqrt(scale) times as long: the sample's flight then falls
+    at about 9.81 m/s² on the G1 (10.2), its jump keeps its length, and its preview pairs each robot
+    frame with the human frame of the same moment."""
+    from dataclasses import replace
+
+    from pipeline.human.importers import load_human_motion
+    from pipeline.human.sample import SAMPLE_PATH
+    from pipeline.retarget.preview import _human_at
+
+    plain_motion, plain = retargeted_sample
+    human = load_human_motion(SAMPLE_PATH)
+    motion, report = retarget(human, replace(RetargetConfig(), time_scale="froude"), progress=False)
+    assert report["duration_scale"] == pytest.approx(np.sqrt(report["scale"]))
+    assert motion.duration == pytest.approx(plain_motion.duration * report["duration_scale"], abs=motion.dt)
+    assert report["jump"]["gravity_m_s2"] == pytest.approx(9.81, rel=0.05)
+    assert report["jump"]["distance_m"] == pytest.approx(plain["jump"]["distance_m"], abs=0.03)
+    skeleton = _human_at(human, motion, report["scale"], report["duration_scale"])
+    np.testing.assert_allclose(skeleton[-1], report["scale"] * human.joint_pos[-1] + [0.0, 1.0, 0.0], atol=0.02)
+
+
 def test_flight_gravity_fits_the_flight_only():
     from pipeline.retarget.core import flight_gravity, jump_summary
 
@@ -213,6 +234,7 @@ def test_default_config_round_trips():
         ({"iterations": 2.5}, "iterations"),
         ({"damping": "x"}, "damping"),
         ({"scale_mode": "arm_span"}, "scale_mode"),
+        ({"time_scale": "slow_motion"}, "time_scale"),
         ({"qp_solver": "nonexistent"}, "qp_solver"),
         ({"trunk_blend": 2.0}, "trunk_blend"),
         ({"bogus": 1}, "bogus"),

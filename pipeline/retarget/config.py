@@ -15,6 +15,7 @@ from pipeline.human.motion import SMPL_JOINT_NAMES
 
 SOLVERS = ("mink", "placo")
 SCALE_MODES = ("height", "fixed")
+TIME_SCALES = ("none", "froude")
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,12 @@ class RetargetConfig:
     scale_mode: str = "height"  # "height": robot_height / human.height; "fixed": fixed_scale
     robot_height: float = 1.32  # m, standing height of the G1
     fixed_scale: float = 0.75
+    # The clip's timing on the robot. "none": the clip's own. "froude": played sqrt(scale) times as long
+    # (faster for a smaller robot), the dynamic similarity of a body scaled by `scale` under the same
+    # gravity: positions shrink by scale, times by sqrt(scale), so accelerations, a flight's gravity
+    # among them, stay the human's. With "none" a flight the person made under 9.81 m/s² falls at
+    # scale × 9.81 on the robot (quality.json: jump.gravity_m_s2).
+    time_scale: str = "none"
     contact: ContactConfig = field(default_factory=ContactConfig)
     fps_out: float = 50.0
 
@@ -124,6 +131,8 @@ class RetargetConfig:
             bad("solver", f"must be one of {SOLVERS}, got {self.solver!r}")
         if self.scale_mode not in SCALE_MODES:
             bad("scale_mode", f"must be one of {SCALE_MODES}, got {self.scale_mode!r}")
+        if self.time_scale not in TIME_SCALES:
+            bad("time_scale", f"must be one of {TIME_SCALES}, got {self.time_scale!r}")
         if self.qp_solver not in _available_qp_solvers():
             bad("qp_solver", f"{self.qp_solver!r} is not installed (have {_available_qp_solvers()})")
         for key in ("posture_weight", "damping"):

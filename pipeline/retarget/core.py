@@ -48,6 +48,9 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
     k = {n: i for i, n in enumerate(names)}
 
     scale = body_scale(human, cfg.scale_mode, cfg.robot_height, cfg.fixed_scale)
+    # The robot's clock: a source frame lasts `duration_scale` times as long as the human's did.
+    duration_scale = float(np.sqrt(scale)) if cfg.time_scale == "froude" else 1.0
+    fps_src = human.fps / duration_scale
     joint_of = {name: row.human_joint for name, row in cfg.task_table.items()}
     targets = transfer_skeleton(human, geometry, scale, cfg.trunk_blend, joint_of)
     contacts = contact_ops.detect_contacts(human, cfg.contact)
@@ -62,13 +65,13 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
     target_quat[:, k["left_ankle"]] = pins.ankle_quat[:, 0]
     target_quat[:, k["right_ankle"]] = pins.ankle_quat[:, 1]
 
-    qpos = _solve(model, cfg, human, names, target_pos, target_quat, pins.alpha, progress)
+    qpos = _solve(model, cfg, human, names, target_pos, target_quat, pins.alpha, fps_src, progress)
     solve_s = time.perf_counter() - started
 
     joint_pos = qpos[:, kin.qpos_index]
     limits = joint_limits(model, kin.joint_names)
     joint_pos = np.clip(joint_pos, limits[:, 0], limits[:, 1])  # QP tolerance only (~1e-9)
-    source_motion = kin.motion(human.fps, qpos[:, :3], qpos[:, 3:7], joint_pos, name=human.name,
+    source_motion = kin.motion(fps_src, qpos[:, :3], qpos[:, 3:7], joint_pos, name=human.name,
                                source=human.source)
     tracked = [k[n] for n in cfg.task_table if cfg.task_table[n].position_weight > 0]
     kp_err = keypoint_error(source_motion.body_pos, target_pos, k["pelvis"], tracked)
@@ -77,8 +80,8 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
     kp_err_uniform = keypoint_error(source_motion.body_pos, scale * uniform, k["pelvis"], tracked)
 
     out = source_motion.resample(fps_out)
-    out_contacts = _resample_mask(contacts, human.fps, fps_out, out.num_frames)
-    out_support = _resample_nearest(pins.support_z, human.fps, fps_out, out.num_frames)
+    out_contacts = _resample_mask(contacts, fps_src, fps_out, out.num_frames)
+    out_support = _resample_nearest(pins.support_z, fps_src, fps_out, out.num_frames)
     heights = GeomHeights(model, kin.qpos_index, (model.site_bodyid[kin.site_index[k["left_ankle"]]],
                                                   model.site_bodyid[kin.site_index[k["right_ankle"]]]))
     root_pos = out.root_pos.copy()
@@ -98,6 +101,7 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
         "fps_in": human.fps,
         "fps_out": fps_out,
         "scale": scale,
+        "duration_scale": duration_scale,
         "solve_seconds": solve_s,
         "solve_frames_per_s": human.num_frames / solve_s,
         "keypoint_err_mm": 1e3 * kp_err,
@@ -111,16 +115,16 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
         "jump": jump_summary(out.root_pos, out_contacts, fps_out, com=heights.center_of_mass(out)),
         "balance": balance_report(out, heights, out_contacts),
         "torque": torque_report(out, model, load_robot_config()),
-        "human_jump_scaled": jump_summary(scale * human.joint_pos[:, 0], contacts, human.fps),
+        "human_jump_scaled": jump_summary(scale * human.joint_pos[:, 0], contacts, fps_src),
     }
     return out, report
 
 
 def _solve(model, cfg: RetargetConfig, human: HumanMotion, names, target_pos, target_quat, pin_alpha,
-           progress: bool) -> np.ndarray:
+           fps: float, progress: bool) -> np.ndarray:
     from tqdm import tqdm
 
-    ik = make_retargeter(model, cfg, 1.0 / human.fps)
+    ik = make_retargeter(model, cfg, 1.0 / fps)  # the robot's frame time: the IK's velocity limits
     k = {n: i for i, n in enumerate(names)}
     poses = np.concatenate([target_quat, target_pos], axis=-1)  # (T, K, 7) wxyz_xyz
     qpos = np.zeros((human.num_frames, model.nq))

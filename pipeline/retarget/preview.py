@@ -19,9 +19,10 @@ from pipeline.motion.motion import Motion
 SIDE_OFFSET = np.array([0.0, 1.0, 0.0])
 
 
-def _human_at(human: HumanMotion, motion: Motion, scale: float) -> np.ndarray:
-    """(T_out, 22, 3) scaled human joints at the motion's frame times, beside the robot."""
-    t = np.arange(motion.num_frames) / motion.fps * human.fps
+def _human_at(human: HumanMotion, motion: Motion, scale: float, duration_scale: float = 1.0) -> np.ndarray:
+    """(T_out, 22, 3) scaled human joints at the motion's frame times, beside the robot (the robot's
+    clock runs `duration_scale` times the human's: retarget's `time_scale`)."""
+    t = np.arange(motion.num_frames) / motion.fps / duration_scale * human.fps
     i0 = np.clip(np.floor(t).astype(int), 0, human.num_frames - 1)
     i1 = np.clip(i0 + 1, 0, human.num_frames - 1)
     a = (t - i0)[:, None, None]
@@ -30,14 +31,14 @@ def _human_at(human: HumanMotion, motion: Motion, scale: float) -> np.ndarray:
 
 
 def write_preview(human: HumanMotion, motion: Motion, path: str | Path, scale: float | None = None,
-                  width: int = 640, height: int = 360, progress: bool = True) -> Path:
+                  width: int = 640, height: int = 360, progress: bool = True, duration_scale: float = 1.0) -> Path:
     import cv2
     from tqdm import tqdm
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     scale = scale if scale is not None else 1.32 / human.height
-    skeleton = _human_at(human, motion, scale)
+    skeleton = _human_at(human, motion, scale, duration_scale)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.mp4")
     writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), motion.fps, (width, height))
     try:
