@@ -409,6 +409,51 @@ def test_reset_state_velocity_noise_only_on_late_starts(data):
         quiet_cfg(rsi_ang_vel_noise=["fast", 0.0, 0.0])
 
 
+def test_own_state_starts_restart_where_the_policy_was(data):
+    """Worlds that cross the marked keyframe alive, in episodes begun before it, are copied into the ring;
+    a reset then starts from a copy: the same physics state, ψ sample, phase and observation history."""
+    cfg = quiet_cfg(own_state_starts={"prob": 1.0, "at_label": "apex", "capacity": 8})
+    env = TrackingEnv(cfg, data, num_envs=N)
+    torch.manual_seed(0)
+    env.reset()
+    apex = int(KEYFRAMES[1])
+    crossed_at = None
+    for _ in range(apex + 5):
+        obs, _, _, _, info = env.step(torch.randn(N, env.action_dim) * 0.05)
+        if len(env.own_states):
+            crossed_at = {"qpos": env.backend.qpos.clone(), "phase": env.phase.clone(), "sample": env.sample.clone(),
+                          "actor": obs["actor"].clone(), "next_kf": env.next_kf.clone()}
+            break
+    assert crossed_at is not None and len(env.own_states) == N  # every world crossed the apex on the same step
+    assert torch.equal(env.own_states.entries["phase"][:N], crossed_at["phase"])
+    assert torch.equal(env.own_states.entries["qpos"][:N], crossed_at["qpos"])
+
+    torch.manual_seed(1)
+    obs = env.reset()  # prob 1: every world restarts from a ring entry
+    entry = [int(torch.nonzero((crossed_at["qpos"] == q).all(-1))[0]) for q in env.backend.qpos]
+    assert len(set(entry)) > 1  # drawn, not all the same copy
+    assert torch.equal(env.phase, crossed_at["phase"][entry]) and torch.equal(env.sample, crossed_at["sample"][entry])
+    assert torch.equal(obs["actor"], crossed_at["actor"][entry])
+    assert torch.equal(env.next_kf, crossed_at["next_kf"][entry])
+    assert (env.start_frame == apex).all() and (env.frame == apex).all()
+    for _ in range(5):  # restarted at the apex they never cross it again: nothing more is recorded
+        env.step(hold(env))
+    assert len(env.own_states) == N
+
+    with pytest.raises(PipelineInputError, match="at_label"):
+        TrackingEnv(quiet_cfg(own_state_starts={"prob": 0.5}), data, num_envs=2)  # no keyframe labelled landing
+    with pytest.raises(PipelineInputError, match="own_state_starts.prob"):
+        quiet_cfg(own_state_starts={"prob": 1.5})
+    from pipeline.evaluation.config import EvalConfig
+    from pipeline.evaluation.evaluate import evaluation_env_config
+
+    assert evaluation_env_config(cfg, EvalConfig()).own_state_starts.prob == 0.0  # evaluation starts at t = 0
+    from pipeline.rl.config import get_variant
+    from pipeline.rl.trainer import env_config_for
+
+    assert env_config_for(cfg, get_variant("adamimic"), stage=2).own_state_starts.prob == 0.0  # so does stage 2
+
+
 def test_domain_randomisation_ranges_applied(data):
     n = 32
     env = TrackingEnv(EnvConfig(), data, num_envs=n)

@@ -69,6 +69,33 @@ def test_fresh_env_continues_bit_for_bit_after_load(data, sampling):  # noqa: F8
         assert np.array_equal(fresh.backend.get_model_field(name, ids), env.backend.get_model_field(name, ids))
 
 
+def test_own_state_ring_is_part_of_the_snapshot(data):  # noqa: F811
+    """With restarts from the policy's own states on, the ring of recorded states resumes too."""
+    raw = {"rsi_prob": 0.5, "randomization": {"push": {"interval_s": [0.04, 0.2]}},
+           "own_state_starts": {"prob": 0.5, "at_label": "apex", "capacity": 4}}
+    cfg = EnvConfig.from_dict(raw)
+    torch.manual_seed(0)
+    env = TrackingEnv(cfg, data, num_envs=N)
+    env.reset()
+    for _ in range(40):  # past the apex (frame 25): the ring holds states
+        env.step(torch.randn(N, env.action_dim) * 0.3)
+    assert len(env.own_states) > 0
+    actions = [torch.randn(N, env.action_dim) * 0.3 for _ in range(40)]
+    state, rng = env.state_dict(), torch.get_rng_state()
+    expected = run(env, actions)
+    torch.manual_seed(5)
+    fresh = TrackingEnv(cfg, data, num_envs=N)
+    fresh.reset()
+    fresh.load_state_dict(state)
+    torch.set_rng_state(rng)
+    got = run(fresh, actions)
+    for t, (e, g) in enumerate(zip(expected, got)):
+        for i, (a, b) in enumerate(zip(e, g)):
+            assert torch.equal(a, b), f"step {t}, output {i}"
+    assert any(bool((e[4] | e[5]).any()) for e in expected), "no episode ended: no restart was drawn"
+    assert torch.equal(fresh.own_states.entries["qpos"], env.own_states.entries["qpos"])
+
+
 def test_load_rejects_another_number_of_worlds(data):  # noqa: F811
     state = TrackingEnv(noisy_cfg(), data, num_envs=2).state_dict()
     with pytest.raises(PipelineInputError, match="num_envs"):

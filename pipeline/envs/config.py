@@ -232,6 +232,24 @@ class SamplingConfig:
 
 
 @dataclass
+class OwnStateStartConfig:
+    """Episodes restarted from states the policy itself reached (pipeline/envs/own_states.py).
+
+    Reference-state starts put the robot exactly on the clip. A policy that lands a jump 0.3 m ahead of
+    the reference, pitched forward and still moving has met its own landing only once per episode from
+    t = 0, and the episodes are lost in the second after it (benchmarks/RESULTS.md, sessions 31–32).
+    With `prob` > 0 the env keeps a ring of the last `capacity` states of episodes that started before
+    the keyframes labelled `at_label` (their own flight, not a reference start) as they crossed one
+    alive, and a reset starts there with probability `prob`: the same physics state, ψ sample, phase
+    and observation history. Off by default; evaluation and stage 2 always start at t = 0.
+    """
+
+    prob: float = 0.0
+    at_label: str = "landing"  # keyframe labels that start with it, as the keyframe stage writes them
+    capacity: int = 512
+
+
+@dataclass
 class EnvConfig:
     rewards: RewardConfig = field(default_factory=RewardConfig)
     observations: ObservationConfig = field(default_factory=ObservationConfig)
@@ -255,6 +273,7 @@ class EnvConfig:
     # did not help (benchmarks/RESULTS.md); it is there for longer runs.
     rsi_lin_vel_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     rsi_ang_vel_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    own_state_starts: OwnStateStartConfig = field(default_factory=OwnStateStartConfig)
     # Joint targets = offset + action_scale · action. "feedforward": the reference's joints at the frame
     # the step ends on, plus the PD actuators' feedforward (Kd q̇_ref + τ_ref) / Kp so that a zero action
     # produces the reference's own torques (envs/feedforward.py); "reference": the reference's joints
@@ -301,6 +320,12 @@ class EnvConfig:
             value = getattr(self, key)
             if len(value) != 3 or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0 for v in value):
                 bad(key, f"must be three numbers >= 0 (x, y, z), got {value!r}")
+        if not 0.0 <= self.own_state_starts.prob <= 1.0:
+            bad("own_state_starts.prob", "must be in [0, 1]")
+        if self.own_state_starts.capacity < 1:
+            bad("own_state_starts.capacity", "must be >= 1")
+        if not self.own_state_starts.at_label:
+            bad("own_state_starts.at_label", "must name a keyframe label, e.g. 'landing'")
         if self.action_offset not in ACTION_OFFSETS:
             bad("action_offset", f"must be one of {', '.join(ACTION_OFFSETS)}, got {self.action_offset!r}")
         if self.sampling.mode not in ("uniform", "adaptive", "curriculum", "sweep"):

@@ -23,6 +23,8 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.envs import rewards as R
 from pipeline.envs.config import EnvConfig
 from pipeline.envs.feedforward import zero_action_targets
+from pipeline.envs.own_states import FIELDS as OWN_STATE_FIELDS
+from pipeline.envs.own_states import OwnStateRing
 from pipeline.envs.randomization import DomainRandomizer
 from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.torch_math import (
@@ -183,6 +185,16 @@ class TrackingEnv:
         # sampler learns nothing about its ψ from it.
         edited = kf[np.asarray(d.edited, dtype=bool)]
         self.first_edit_frame = int(edited[0]) if edited.size else 0
+        self.own_states = self.own_state_keyframes = None
+        own = self.cfg.own_state_starts
+        if own.prob > 0:
+            labels = [str(label) for label in d.keyframe_labels] if d.keyframe_labels is not None else []
+            marked = [i for i, label in enumerate(labels) if label.startswith(own.at_label)]
+            if not marked:
+                raise PipelineInputError(f"task {d.task}", "env.own_state_starts.at_label",
+                                         f"no keyframe label starts with {own.at_label!r} (labels: {labels})")
+            self.own_state_keyframes = torch.as_tensor(marked, device=self.device)
+            self.own_states = OwnStateRing(own.capacity, self.device)
 
     def _rsi_frames(self, kf: np.ndarray, labels, num_frames: int) -> np.ndarray:
         """Frames a reference-state start may use (`EnvConfig.rsi_frames`); never the last frame,
@@ -438,6 +450,9 @@ class TrackingEnv:
         self.prev_joint_vel = s["joint_vel"]
         self.obs_history, self.privileged, self.odometry = self._observe_fn(s["gravity"], odometry_noise)
         final_obs = self._obs_dict()  # pre-reset: the finished episodes' last observations
+        done = terminated | truncated
+        if self.own_states is not None:
+            self._record_own_states(crossed & ~done, s["crossed_kf"])
         info = {
             "keyframe_crossed": crossed,
             "keyframe_index": s["crossed_kf"],
@@ -458,7 +473,6 @@ class TrackingEnv:
             "terminated_by": {"keyframe_error": s["by_keyframe"], "tilt": s["by_tilt"], "base_height": s["by_height"]},
         }
         sparse, dense = s["sparse"], s["dense"]
-        done = terminated | truncated
         self.episodes_finished = self.episodes_finished + done.sum()
         self.episodes_terminated = self.episodes_terminated + terminated.sum()
         if bool(done.any()):
@@ -466,6 +480,19 @@ class TrackingEnv:
             self._record_psi_outcomes(ended, s)
             self._reset_worlds(ended)
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
+
+    def _record_own_states(self, alive_crossing: torch.Tensor, crossed_kf: torch.Tensor) -> None:
+        """Copies into the ring the worlds that crossed an `own_state_starts` keyframe this step and are
+        still up, if their episode started before that keyframe (a reference-state start there would
+        only copy the reference)."""
+        crossed_frame = self.kf_frames[crossed_kf.clamp(min=0)]
+        keep = alive_crossing & torch.isin(crossed_kf, self.own_state_keyframes) & (self.start_frame < crossed_frame)
+        ids = keep.nonzero().squeeze(-1)
+        if ids.numel() == 0:
+            return
+        state = {"qpos": self.backend.qpos[ids], "qvel": self.backend.qvel[ids]}
+        state.update({name: getattr(self, name)[ids] for name in OWN_STATE_FIELDS if name not in state})
+        self.own_states.add(state)
 
     def _record_psi_outcomes(self, ended: torch.Tensor, s: dict) -> None:
         """Tells the ψ sampler how the episodes that met the edit ended (`SamplingConfig.judge`)."""
@@ -598,6 +625,7 @@ class TrackingEnv:
                                    int(self.episodes_terminated)],
             "randomizer_rng": self.randomizer.rng.bit_generator.state,
             "sampler": self.sampler.state_dict(),
+            "own_states": None if self.own_states is None else self.own_states.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -632,6 +660,8 @@ class TrackingEnv:
         self.randomizer.rng.bit_generator.state = state["randomizer_rng"]
         if "sampler" in state:  # absent in states saved before ψ sampling had a state
             self.sampler.load_state_dict(state["sampler"])
+        if self.own_states is not None and state.get("own_states") is not None:
+            self.own_states.load_state_dict(state["own_states"])
         self.backend.set_state(ids, state["qpos"].numpy(), state["qvel"].numpy())
 
     # ------------------------------------------------------------------------------------ internals
@@ -724,6 +754,12 @@ class TrackingEnv:
         if self.rsi_vel_noise is not None:  # None when off: no draw, the same random stream as without it
             started_late = (frame > 0)[:, None].to(qvel.dtype)
             qvel[:, 0:6] += started_late * self.rsi_vel_noise * (2.0 * torch.rand(n, 6, device=dev) - 1.0)
+        own, restart = None, None
+        if self.own_states is not None and len(self.own_states) > 0:  # empty: no draw, as with the option off
+            own = (torch.rand(n, device=dev) < self.cfg.own_state_starts.prob).nonzero().squeeze(-1)
+            restart = self.own_states.draw(own.numel())
+            sample[own], frame[own] = restart["sample"], restart["frame"]
+            qpos[own], qvel[own] = restart["qpos"].to(qpos.dtype), restart["qvel"].to(qvel.dtype)
         self.backend.set_state(ids, qpos, qvel, forward=False)  # observations read qpos/qvel only
 
         ids_np = ids.cpu().numpy()
@@ -761,6 +797,13 @@ class TrackingEnv:
         priv = self.privileged.clone()
         priv[ids] = privileged
         self.privileged = priv
+        if own is not None and own.numel():
+            # the recorded world's phase, history and odometry, so the policy sees what it saw there
+            # (episode_step restarts at 0: only the odometry's update cadence reads it)
+            worlds = ids[own]
+            for name in OWN_STATE_FIELDS:
+                if name not in ("qpos", "qvel", "sample", "frame"):
+                    getattr(self, name)[worlds] = restart[name]
 
 
 def _make_backend(backend, model, num_envs, nthread, device, source):

@@ -54,6 +54,8 @@ def evaluation_env_config(env_cfg, eval_cfg: EvalConfig):
     cfg = copy.deepcopy(env_cfg)
     if hasattr(cfg, "rsi_prob"):
         cfg.rsi_prob = 0.0  # episodes from t = 0 so every keyframe is scored
+    if hasattr(cfg, "own_state_starts"):
+        cfg.own_state_starts.prob = 0.0
     if hasattr(cfg, "sampling"):
         cfg.sampling.mode = "sweep"  # every ψ sample of a range in turn: equal weight, the same ψ for every policy
     if hasattr(cfg, "randomization"):

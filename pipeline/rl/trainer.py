@@ -492,6 +492,8 @@ def env_config_for(env_cfg, variant: Variant, stage: int):
         env_cfg.variant.adaptive_phase_stage1 = bool(variant.adaptive_phase_stage1)
     if stage == 2 and hasattr(env_cfg, "rsi_prob"):
         env_cfg.rsi_prob = 0.0
+    if stage == 2 and hasattr(env_cfg, "own_state_starts"):
+        env_cfg.own_state_starts.prob = 0.0
     return env_cfg
 
 
