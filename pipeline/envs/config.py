@@ -250,6 +250,16 @@ class OwnStateStartConfig:
     capacity: int = 512
 
 
+def start_episodes_at_zero(cfg) -> None:
+    """Switches off every start after t = 0 (reference-state and own-state starts), in place: evaluation
+    scores every keyframe and stage 2 learns from the clip's beginning. Duck-typed, so a config without
+    these fields passes through."""
+    if hasattr(cfg, "rsi_prob"):
+        cfg.rsi_prob = 0.0
+    if hasattr(cfg, "own_state_starts"):
+        cfg.own_state_starts.prob = 0.0
+
+
 @dataclass
 class EnvConfig:
     rewards: RewardConfig = field(default_factory=RewardConfig)

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.envs.config import start_episodes_at_zero
 from pipeline.evaluation.config import EvalConfig
 from pipeline.evaluation.metrics import EpisodeMetrics, EpisodeRecord, PsiReach, episode_metrics
 from pipeline.keyframes.tracking_data import TrackingData
@@ -52,10 +53,7 @@ def nearest_sample_data(data: TrackingData, psi: float) -> TrackingData:
 def evaluation_env_config(env_cfg, eval_cfg: EvalConfig):
     """The training env config made deterministic for evaluation (a deep copy)."""
     cfg = copy.deepcopy(env_cfg)
-    if hasattr(cfg, "rsi_prob"):
-        cfg.rsi_prob = 0.0  # episodes from t = 0 so every keyframe is scored
-    if hasattr(cfg, "own_state_starts"):
-        cfg.own_state_starts.prob = 0.0
+    start_episodes_at_zero(cfg)  # so every keyframe is scored
     if hasattr(cfg, "sampling"):
         cfg.sampling.mode = "sweep"  # every ψ sample of a range in turn: equal weight, the same ψ for every policy
     if hasattr(cfg, "randomization"):

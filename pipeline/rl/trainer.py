@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from pipeline.common.atomic import atomic_file, write_text_atomic
 from pipeline.common.errors import PipelineInputError
+from pipeline.envs.config import start_episodes_at_zero
 from pipeline.rl.amp import AMPDiscriminator, JointWindow, reference_windows
 from pipeline.rl.averaging import WeightAverage
 from pipeline.rl.checkpoint import CheckpointManager, check_compatible, load_policy, read_meta, rng_state, save_policy, set_rng_state
@@ -490,10 +491,8 @@ def env_config_for(env_cfg, variant: Variant, stage: int):
     if hasattr(env_cfg, "variant"):
         env_cfg.variant.tracking = "sparse" if variant.keyframe_rewards else "dense"
         env_cfg.variant.adaptive_phase_stage1 = bool(variant.adaptive_phase_stage1)
-    if stage == 2 and hasattr(env_cfg, "rsi_prob"):
-        env_cfg.rsi_prob = 0.0
-    if stage == 2 and hasattr(env_cfg, "own_state_starts"):
-        env_cfg.own_state_starts.prob = 0.0
+    if stage == 2:
+        start_episodes_at_zero(env_cfg)
     return env_cfg
 
 
