@@ -174,7 +174,9 @@ def test_keyframe_crossing_with_fast_phase_and_sparse_values(data):
 
 
 def test_dense_reward_terms_against_hand_values(data):
-    env = TrackingEnv(quiet_cfg(), data, num_envs=N)
+    cfg = quiet_cfg()
+    cfg.rewards.weights.root_tilt, cfg.rewards.weights.root_ang_vel = 0.3, 0.2  # opt-in: off by default
+    env = TrackingEnv(cfg, data, num_envs=N)
     env.reset()
     a1, a2 = torch.full((N, 27), 0.05), torch.full((N, 27), -0.05)
     env.step(a1)
@@ -192,6 +194,15 @@ def test_dense_reward_terms_against_hand_values(data):
     assert torch.allclose(t["action_rate"], torch.full((N,), 27 * 0.1**2), rtol=1e-5)
     assert torch.allclose(t["smoothness"], torch.full((N,), 27 * (-0.05 - 0.1) ** 2), rtol=1e-5)  # a2-2a1+0
     assert torch.allclose(t["torques"], (b.actuator_force**2).sum(-1), rtol=1e-5)
+    # root terms: pelvis tilt and body-frame angular velocity against the reference's at the frame
+    s2 = env.cfg.rewards.sigma2
+    ref_root_quat = torch.as_tensor(data.motion.root_quat[frame], dtype=torch.float32).expand(N, 4)
+    tilt2 = ((projected_gravity(b.qpos[:, 3:7]) - projected_gravity(ref_root_quat))[:, :2] ** 2).sum(-1)
+    assert tilt2.max() > 1e-8  # the step moved the pelvis off the reference's tilt: the kernel is tested below 1
+    assert torch.allclose(t["root_tilt"], torch.exp(-tilt2 / s2.root_tilt), rtol=1e-5)
+    ref_ang_vel = torch.as_tensor(data.motion.qvel()[frame, 3:6], dtype=torch.float32)
+    ang2 = ((b.qvel[:, 3:6] - ref_ang_vel) ** 2).sum(-1)
+    assert torch.allclose(t["root_ang_vel"], torch.exp(-ang2 / s2.root_ang_vel), rtol=1e-5)
     w = env.cfg.rewards.weights
     total = sum(getattr(w, k) * v for k, v in t.items())
     assert torch.allclose(rew["dense"], total)

@@ -28,6 +28,11 @@ class RewardWeights:
     local_body_pos: float = 0.75
     local_body_rot: float = 0.5
     local_joint_pos: float = 0.75
+    # Not in the paper's table (0 = off): the root's tilt (gravity in the pelvis frame) and angular
+    # velocity against the reference's, every step, as BeyondMimic's anchor terms. The local terms above
+    # are all relative to the root, so the pelvis's own pitch is otherwise paid for only at keyframes.
+    root_tilt: float = 0.0
+    root_ang_vel: float = 0.0
     feet_orientation: float = -0.05
     joint_acc: float = -2.5e-7
     joint_vel: float = -5e-4
@@ -54,6 +59,8 @@ class KernelSigmas:
     # 0.891 / 0.859, the 1.7–2.0 m gaps 0.70 / 0.60 / 0.60 against 0.60 / 0.30 / 0.20
     # (benchmarks/RESULTS.md, session 29).
     feet_pos: float = 0.3
+    root_tilt: float = 0.1  # |Δ gravity_xy|², unitless: 0.3 off (a 17° lean) pays exp(−0.9) = 0.41
+    root_ang_vel: float = 4.0  # |Δω|² in (rad/s)²: 2 rad/s off pays exp(−1) = 0.37
 
 
 @dataclass

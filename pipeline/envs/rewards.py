@@ -28,6 +28,11 @@ def joint_kernel(joint_pos: torch.Tensor, target: torch.Tensor, sigma2: float) -
     return torch.exp(-((joint_pos - target) ** 2).mean(-1) / sigma2)
 
 
+def vector_kernel(value: torch.Tensor, target: torch.Tensor, sigma2: float) -> torch.Tensor:
+    """value, target (N, D): exp(−|value − target|² / σ²), the whole vector's error at once."""
+    return torch.exp(-((value - target) ** 2).sum(-1) / sigma2)
+
+
 def feet_orientation(feet_quat: torch.Tensor, contact: torch.Tensor) -> torch.Tensor:
     """Σ over feet in contact of |gravity_xy in the foot frame|²: zero when the soles are flat."""
     g = projected_gravity(feet_quat)

@@ -39,8 +39,9 @@ from pipeline.robot.g1 import joint_limits, load_robot_config
 
 FRAME_OBS_DIM = 3 + 3 + 27 + 27 + 27 + 1 + 1 + 3  # per history step (for the 27-joint G1)
 # The dense group's terms in the order `_score` stacks them (the global ones only in dense tracking).
-_DENSE_TERMS = ("local_body_pos", "local_body_rot", "local_joint_pos", "feet_orientation", "joint_acc", "joint_vel",
-                "action_rate", "smoothness", "torques", "torque_limits", "joint_pos_limits", "joint_vel_limits")
+_DENSE_TERMS = ("local_body_pos", "local_body_rot", "local_joint_pos", "root_tilt", "root_ang_vel", "feet_orientation",
+                "joint_acc", "joint_vel", "action_rate", "smoothness", "torques", "torque_limits", "joint_pos_limits",
+                "joint_vel_limits")
 _GLOBAL_TERMS = ("global_body_pos", "global_body_rot", "global_feet_pos")
 _EPS = 1e-6
 
@@ -525,6 +526,8 @@ class TrackingEnv:
             "local_body_pos": torch.exp(-(local_err2 * self.inv_sigma2_pos).mean(-1)),
             "local_body_rot": R.rotation_kernel(local_quat, self.ref_local_quat[frame], s2.body_rot),
             "local_joint_pos": R.joint_kernel(joint_pos, self.ref_joint_pos[frame], s2.joint_pos),
+            "root_tilt": R.vector_kernel(projected_gravity(root_quat)[:, :2], self.ref_gravity_xy[frame], s2.root_tilt),
+            "root_ang_vel": R.vector_kernel(qvel[:, 3:6], self.ref_qvel[frame, 3:6], s2.root_ang_vel),
             "feet_orientation": R.feet_orientation(site_quat[:, self.feet_idx], foot_contact.to(torch.float32)),
             "joint_acc": R.sum_sq(joint_acc),
             "joint_vel": R.sum_sq(joint_vel),
