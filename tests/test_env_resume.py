@@ -134,3 +134,29 @@ def test_trainer_resume_on_the_tracking_env_is_bit_for_bit(tmp_path, data, noise
     assert straight.history[-1]["policy_loss"] == resumed.history[-1]["policy_loss"]
     assert straight.history[-1]["reward_dense"] == resumed.history[-1]["reward_dense"]
     assert straight.env.penalty_scale == resumed.env.penalty_scale
+
+
+def test_adaptive_start_frames_are_part_of_the_snapshot(data):  # noqa: F811
+    """With adaptive reference-state start frames, the per-group failure rates resume too."""
+    raw = {"rsi_prob": 1.0, "randomization": {"push": {"interval_s": [0.04, 0.2]}},
+           "rsi_sampling": {"mode": "adaptive", "bins": 4, "rate_smoothing": 0.5}}
+    cfg = EnvConfig.from_dict(raw)
+    torch.manual_seed(0)
+    env = TrackingEnv(cfg, data, num_envs=N)
+    env.reset()
+    for _ in range(60):  # random actions fall: episodes end and are charged to their start groups
+        env.step(torch.randn(N, env.action_dim))
+    assert (env.start_sampler.failure_rate < 1.0).any(), "no group saw an episode end"
+    actions = [torch.randn(N, env.action_dim) for _ in range(40)]
+    state, rng = env.state_dict(), torch.get_rng_state()
+    expected = run(env, actions)
+    torch.manual_seed(5)
+    fresh = TrackingEnv(cfg, data, num_envs=N)
+    fresh.reset()
+    fresh.load_state_dict(state)
+    torch.set_rng_state(rng)
+    got = run(fresh, actions)
+    for t, (e, g) in enumerate(zip(expected, got)):
+        for i, (a, b) in enumerate(zip(e, g)):
+            assert torch.equal(a, b), f"step {t}, output {i}"
+    assert torch.equal(fresh.start_sampler.failure_rate, env.start_sampler.failure_rate)

@@ -257,6 +257,19 @@ class OwnStateStartConfig:
     capacity: int = 512
 
 
+@dataclass
+class StartFrameSamplingConfig:
+    """Where reference-state starts begin (pipeline/envs/start_frames.py): `uniform` over the stance
+    frames, or `adaptive` — groups of frames drawn in proportion to how often episodes started there
+    fail, with `uniform_share` of the draws kept uniform. `rate_smoothing`: the weight of each step's
+    ended episodes in a group's running failure rate."""
+
+    mode: str = "uniform"
+    bins: int = 16
+    uniform_share: float = 0.3
+    rate_smoothing: float = 0.05
+
+
 def start_episodes_at_zero(cfg) -> None:
     """Switches off every start after t = 0 (reference-state and own-state starts), in place: evaluation
     scores every keyframe and stage 2 learns from the clip's beginning. Duck-typed, so a config without
@@ -291,6 +304,7 @@ class EnvConfig:
     # did not help (benchmarks/RESULTS.md); it is there for longer runs.
     rsi_lin_vel_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     rsi_ang_vel_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rsi_sampling: StartFrameSamplingConfig = field(default_factory=StartFrameSamplingConfig)
     own_state_starts: OwnStateStartConfig = field(default_factory=OwnStateStartConfig)
     # Joint targets = offset + action_scale · action. "feedforward": the reference's joints at the frame
     # the step ends on, plus the PD actuators' feedforward (Kd q̇_ref + τ_ref) / Kp so that a zero action
@@ -338,6 +352,15 @@ class EnvConfig:
             value = getattr(self, key)
             if len(value) != 3 or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0 for v in value):
                 bad(key, f"must be three numbers >= 0 (x, y, z), got {value!r}")
+        rs = self.rsi_sampling
+        if rs.mode not in ("uniform", "adaptive"):
+            bad("rsi_sampling.mode", f"{rs.mode!r}: expected 'uniform' or 'adaptive'")
+        if rs.bins < 1:
+            bad("rsi_sampling.bins", "must be >= 1")
+        if not 0.0 <= rs.uniform_share <= 1.0:
+            bad("rsi_sampling.uniform_share", "must be in [0, 1]")
+        if not 0.0 < rs.rate_smoothing <= 1.0:
+            bad("rsi_sampling.rate_smoothing", "must be in (0, 1]")
         if not 0.0 <= self.own_state_starts.prob <= 1.0:
             bad("own_state_starts.prob", "must be in [0, 1]")
         if self.own_state_starts.capacity < 1:

@@ -25,6 +25,7 @@ from pipeline.envs.config import EnvConfig
 from pipeline.envs.feedforward import zero_action_targets
 from pipeline.envs.own_states import FIELDS as OWN_STATE_FIELDS
 from pipeline.envs.own_states import OwnStateRing
+from pipeline.envs.start_frames import StartFrameSampler
 from pipeline.envs.randomization import DomainRandomizer
 from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.torch_math import (
@@ -180,6 +181,7 @@ class TrackingEnv:
         self.kf_target_pos = self._tensor(m.body_pos[kf][None] + np.asarray(d.keyframe_offsets)[:, :, None])  # (S,K,B,3)
         self.kf_target_quat = self._tensor(m.body_quat[kf])  # (K,B,4): edits only translate
         self.rsi_frame_table = torch.as_tensor(self._rsi_frames(kf, d.keyframe_labels, t), device=self.device)
+        self.start_sampler = StartFrameSampler(self.cfg.rsi_sampling, self.rsi_frame_table, t)
         noise = list(self.cfg.rsi_lin_vel_noise) + list(self.cfg.rsi_ang_vel_noise)
         self.rsi_vel_noise = self._tensor(noise) if self.cfg.rsi_prob > 0 and any(noise) else None
         # An episode that starts at or after the first edited keyframe never meets the edit: the
@@ -479,6 +481,7 @@ class TrackingEnv:
         if bool(done.any()):
             ended = done.nonzero().squeeze(-1)
             self._record_psi_outcomes(ended, s)
+            self.start_sampler.record(self.start_frame[ended], terminated[ended])
             self._reset_worlds(ended)
         return self._obs_dict(), {"sparse": sparse, "dense": dense}, terminated, truncated, info
 
@@ -629,6 +632,7 @@ class TrackingEnv:
             "randomizer_rng": self.randomizer.rng.bit_generator.state,
             "sampler": self.sampler.state_dict(),
             "own_states": None if self.own_states is None else self.own_states.state_dict(),
+            "start_sampler": self.start_sampler.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -665,6 +669,8 @@ class TrackingEnv:
             self.sampler.load_state_dict(state["sampler"])
         if self.own_states is not None and state.get("own_states") is not None:
             self.own_states.load_state_dict(state["own_states"])
+        if "start_sampler" in state:  # absent in states saved before adaptive start frames existed
+            self.start_sampler.load_state_dict(state["start_sampler"])
         self.backend.set_state(ids, state["qpos"].numpy(), state["qvel"].numpy())
 
     # ------------------------------------------------------------------------------------ internals
@@ -748,7 +754,7 @@ class TrackingEnv:
         frame = torch.zeros(n, dtype=torch.long, device=dev)
         if self.cfg.rsi_prob > 0 and self.rsi_frame_table.numel() > 0:
             rsi = torch.rand(n, device=dev) < self.cfg.rsi_prob
-            pick = self.rsi_frame_table[torch.randint(self.rsi_frame_table.numel(), (n,), device=dev)]
+            pick = self.start_sampler.draw(n)
             frame = torch.where(rsi, pick, frame)
         qpos = torch.cat([self.ref_root_pos[frame] + self.offset_table[sample, frame], self.ref_root_quat[frame],
                           self.ref_joint_pos[frame]], dim=-1)
