@@ -31,6 +31,9 @@ class RewardWeights:
     # Not in the paper's table (0 = off): the root's tilt (gravity in the pelvis frame) and angular
     # velocity against the reference's, every step, as BeyondMimic's anchor terms. The local terms above
     # are all relative to the root, so the pelvis's own pitch is otherwise paid for only at keyframes.
+    # Off: at 1.0 / 0.5 the far jump's robot (learn_cpu --segment 2.3) braked after its landing as the reference
+    # does, then sat back and fell backward (0.016 against 0.094), and on the bundled sample half the episodes
+    # fell before the landing (benchmarks/RESULTS.md, session 34).
     root_tilt: float = 0.0
     root_ang_vel: float = 0.0
     feet_orientation: float = -0.05
@@ -50,6 +53,8 @@ class KernelSigmas:
     `feet_pos`)."""
 
     upper_body_pos: float = 0.03
+    # 0.1 m² pays 0.98 of the term for feet 11 cm off; 0.01 taught learn_cpu's 2.3 s far jump to stand from the
+    # reference's touch-down, not from t = 0 (benchmarks/RESULTS.md, session 34)
     lower_body_pos: float = 0.1
     body_rot: float = 1.0
     joint_pos: float = 1.0
@@ -262,7 +267,9 @@ class StartFrameSamplingConfig:
     """Where reference-state starts begin (pipeline/envs/start_frames.py): `uniform` over the stance
     frames, or `adaptive` — groups of frames drawn in proportion to how often episodes started there
     fail, with `uniform_share` of the draws kept uniform. `rate_smoothing`: the weight of each step's
-    ended episodes in a group's running failure rate."""
+    ended episodes in a group's running failure rate. Off by default: on learn_cpu's 2.3 s far-jump segment it
+    taught the stand from the reference's own touch-down (18 of 18 episodes started there, 0 of 18 without it)
+    but not from t = 0, where the robot's own touch-down is not the reference's (benchmarks/RESULTS.md, session 34)."""
 
     mode: str = "uniform"
     bins: int = 16
