@@ -31,6 +31,24 @@ def run(env, actions):
     return out
 
 
+def resumed_env(cfg, data, env, actions):  # noqa: F811
+    """Snapshots `env`, steps it through `actions`, and does the same from the snapshot in a fresh env built
+    under another seed: every output must be equal. Returns the fresh env."""
+    state, rng = env.state_dict(), torch.get_rng_state()
+    expected = run(env, actions)
+    torch.manual_seed(5)
+    fresh = TrackingEnv(cfg, data, num_envs=N)
+    fresh.reset()
+    fresh.load_state_dict(state)
+    torch.set_rng_state(rng)
+    got = run(fresh, actions)
+    for t, (e, g) in enumerate(zip(expected, got)):
+        for i, (a, b) in enumerate(zip(e, g)):
+            assert torch.equal(a, b), f"step {t}, output {i}"
+    assert any(bool((e[4] | e[5]).any()) for e in expected), "no episode ended: no restart was drawn"
+    return fresh
+
+
 @pytest.mark.parametrize("sampling", ["adaptive", "curriculum"])
 def test_fresh_env_continues_bit_for_bit_after_load(data, sampling):  # noqa: F811
     cfg = noisy_cfg(sampling)
@@ -81,18 +99,7 @@ def test_own_state_ring_is_part_of_the_snapshot(data):  # noqa: F811
         env.step(torch.randn(N, env.action_dim) * 0.3)
     assert len(env.own_states) > 0
     actions = [torch.randn(N, env.action_dim) * 0.3 for _ in range(40)]
-    state, rng = env.state_dict(), torch.get_rng_state()
-    expected = run(env, actions)
-    torch.manual_seed(5)
-    fresh = TrackingEnv(cfg, data, num_envs=N)
-    fresh.reset()
-    fresh.load_state_dict(state)
-    torch.set_rng_state(rng)
-    got = run(fresh, actions)
-    for t, (e, g) in enumerate(zip(expected, got)):
-        for i, (a, b) in enumerate(zip(e, g)):
-            assert torch.equal(a, b), f"step {t}, output {i}"
-    assert any(bool((e[4] | e[5]).any()) for e in expected), "no episode ended: no restart was drawn"
+    fresh = resumed_env(cfg, data, env, actions)
     assert torch.equal(fresh.own_states.entries["qpos"], env.own_states.entries["qpos"])
 
 
@@ -148,15 +155,5 @@ def test_adaptive_start_frames_are_part_of_the_snapshot(data):  # noqa: F811
         env.step(torch.randn(N, env.action_dim))
     assert (env.start_sampler.failure_rate < 1.0).any(), "no group saw an episode end"
     actions = [torch.randn(N, env.action_dim) for _ in range(40)]
-    state, rng = env.state_dict(), torch.get_rng_state()
-    expected = run(env, actions)
-    torch.manual_seed(5)
-    fresh = TrackingEnv(cfg, data, num_envs=N)
-    fresh.reset()
-    fresh.load_state_dict(state)
-    torch.set_rng_state(rng)
-    got = run(fresh, actions)
-    for t, (e, g) in enumerate(zip(expected, got)):
-        for i, (a, b) in enumerate(zip(e, g)):
-            assert torch.equal(a, b), f"step {t}, output {i}"
+    fresh = resumed_env(cfg, data, env, actions)
     assert torch.equal(fresh.start_sampler.failure_rate, env.start_sampler.failure_rate)
