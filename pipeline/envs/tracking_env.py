@@ -516,6 +516,7 @@ class TrackingEnv:
         cfg, w = self.cfg, self.cfg.rewards.weights
         phase, frame, sample = self.phase, self.frame, self.sample
         root_pos, root_quat = qpos[:, 0:3], qpos[:, 3:7]
+        gravity = projected_gravity(root_quat)  # the root tilt term, the tilt check and the observations
         joint_pos, joint_vel = qpos[:, 7:], qvel[:, 6:]
 
         # ---- dense group
@@ -529,7 +530,7 @@ class TrackingEnv:
             "local_body_pos": torch.exp(-(local_err2 * self.inv_sigma2_pos).mean(-1)),
             "local_body_rot": R.rotation_kernel(local_quat, self.ref_local_quat[frame], s2.body_rot),
             "local_joint_pos": R.joint_kernel(joint_pos, self.ref_joint_pos[frame], s2.joint_pos),
-            "root_tilt": R.vector_kernel(projected_gravity(root_quat)[:, :2], self.ref_gravity_xy[frame], s2.root_tilt),
+            "root_tilt": R.vector_kernel(gravity[:, :2], self.ref_gravity_xy[frame], s2.root_tilt),
             "root_ang_vel": R.vector_kernel(qvel[:, 3:6], self.ref_qvel[frame, 3:6], s2.root_ang_vel),
             "feet_orientation": R.feet_orientation(site_quat[:, self.feet_idx], foot_contact.to(torch.float32)),
             "joint_acc": R.sum_sq(joint_acc),
@@ -570,7 +571,6 @@ class TrackingEnv:
         by_keyframe = terminated
 
         # ---- terminations
-        gravity = projected_gravity(root_quat)
         tc = cfg.terminations
         tilt_xy = gravity[:, :2] - self.ref_gravity_xy[frame] if tc.relative_to_reference else gravity[:, :2]
         by_tilt = (tilt_xy**2).sum(-1) > tc.max_tilt**2
