@@ -19,7 +19,7 @@ set -euo pipefail
 KIT=.gpu_kit
 STASH=/tmp/gpu_kit
 SITE=/tmp/site
-PART_BYTES=$((58 * 1024 * 1024))  # one part, the repository (~3 MB) and a task's data (~15 MB) fit a call
+PART_BYTES=$((58 * 1024 * 1024))  # a part and the repository (~3 MB) fit one call; the last part leaves room for data
 VENDOR=robots/g1/vendor
 
 pins() {  # name==version of each package the kit holds, from pyproject.toml
