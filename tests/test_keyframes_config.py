@@ -129,8 +129,8 @@ def test_edited_keyframe_missing_in_motion(jump):
 
 
 def test_the_far_jump_gpu_recipe_loads_and_points_at_the_shared_clip():
-    """models/pretrained/far_jump/params.yaml: the gpu profile on the paper's far jump, its input
-    resolved from the file's own folder to ../shared beside the repository."""
+    """models/pretrained/far_jump/params.yaml: the gpu profile on the paper's far jump with its push prior,
+    its input resolved from the file's own folder to ../shared beside the repository."""
     from pipeline.config import load_params
 
     root = Path(__file__).resolve().parents[1]
@@ -141,3 +141,4 @@ def test_the_far_jump_gpu_recipe_loads_and_points_at_the_shared_clip():
     task = params.tasks["far_jump"]
     assert (params.path.parent / task.input).resolve() == (root.parent / "shared/data/adamimic_smpl/far_jump.npz").resolve()
     assert task.psi.raw == 1.1 and task.terrain.kind == "gap"
+    assert task.push_prior.enabled  # every CPU run that learnt the far jump trained on one
