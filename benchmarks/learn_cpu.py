@@ -27,7 +27,7 @@ and whether averaging its tail steadies it (benchmarks/RESULTS.md, session 30).
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M] [--snapshots K [--snapshot-every N]]
-        [--push-prior [--push-prior-knots K] [--push-prior-iterations N] [--push-prior-land-by-slack S]
+        [--push-prior [--push-prior-knots K] [--push-prior-iterations N] [--push-prior-land-by-slack S] [--push-prior-reference-posture]
          | --no-push-prior | --push-prior-from DIR]
         [--set env.KEY=VALUE | train.KEY=VALUE ...]
 
@@ -250,6 +250,9 @@ def main() -> None:
     parser.add_argument("--push-prior-land-by-slack", type=float, default=None, metavar="S",
                         help="--push-prior's search lets the touch-down come up to S s after the reference's landing "
                              "(default: PushPriorConfig's)")
+    parser.add_argument("--push-prior-reference-posture", action="store_true",
+                        help="--push-prior's search keeps the touch-down's posture near the reference's at its landing "
+                             "(PushPriorConfig.reference_posture)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="override env.* or train.* like params.yaml, e.g. env.randomization.enabled=false")
     args = parser.parse_args()
@@ -263,7 +266,8 @@ def main() -> None:
         edit = paper_task(args.motion).edit
         args.push_prior = args.push_prior_from is None and edit.mode == "x" and edit.sign == 1.0
     for flag, value in (("--push-prior-knots", args.push_prior_knots), ("--push-prior-iterations", args.push_prior_iterations),
-                        ("--push-prior-land-by-slack", args.push_prior_land_by_slack)):
+                        ("--push-prior-land-by-slack", args.push_prior_land_by_slack),
+                        ("--push-prior-reference-posture", args.push_prior_reference_posture or None)):
         if value is not None and not args.push_prior:
             parser.error(f"{flag}: only with --push-prior (a saved prior keeps the search it came from)")
 
@@ -301,6 +305,8 @@ def main() -> None:
                 search["iterations"] = args.push_prior_iterations
             if args.push_prior_land_by_slack is not None:
                 search["land_by_slack_s"] = args.push_prior_land_by_slack
+            if args.push_prior_reference_posture:
+                search["reference_posture"] = True
             prior_cfg = PushPriorConfig(enabled=True, **search)
             data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True))
             write_push_prior(out / "push_prior", data.push_prior)

@@ -2,6 +2,7 @@
 with the rollouts it was measured by, it round-trips through its files, bad files are named, and a policy
 trained without it is refused where the task has one."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,8 @@ class _StubJumps:
                 continue
             out.append(Jump(feet_m=feet, landing_x=feet, pelvis_m=feet, takeoff_s=0.3, landing_s=0.6, tilt=0.1, pitch_rate=0.0,
                             lowest_pelvis_m=MIN_FLIGHT_PELVIS_M - (0.001 if feet > self.landable_up_to_m else 0.0),
-                            apex_pelvis_m=0.8, capture_outside_m=0.0, fall_check_excess=0.0))
+                            apex_pelvis_m=0.8, capture_outside_m=0.0, fall_check_excess=0.0,
+                            feet_ahead_m=0.5 * (feet - 0.9)))  # a farther landing reaches further forward
         return out
 
 
@@ -86,6 +88,38 @@ def test_the_search_can_insist_on_a_landable_jump():
     nothing = cross_entropy_search(_StubJumps(landable_up_to_m=0.0), 1.0, 0.0, 4, 32, np.random.default_rng(0),
                                    log=None, landable_only=True)
     assert nothing[1] is None
+
+
+def test_a_posture_limit_keeps_the_search_from_reaching_its_feet_forward():
+    from pipeline.priors.open_loop import Jump, LandingPosture, cross_entropy_search
+
+    posture = LandingPosture(max_feet_ahead_m=0.025, min_lean=-1.0, min_pitch_rate=-10.0)
+    free = cross_entropy_search(_StubJumps(), 1.0, 0.0, 4, 32, np.random.default_rng(0), log=None, landable_only=True)[1]
+    held = cross_entropy_search(_StubJumps(), 1.0, 0.0, 4, 32, np.random.default_rng(0), log=None, landable_only=True,
+                                posture=posture)[1]
+    assert free.feet_m > 0.95 and not free.landable(1.0, 0.0, posture=posture)
+    assert held.feet_m <= 0.95 and held.feet_ahead_m <= 0.025 and held.landable(1.0, 0.0, posture=posture)
+    # each limit by hand: 0.1 m too far ahead, leaning back 0.2 past its limit, pitching back 1 rad/s too fast
+    jump = dataclasses.replace(held, feet_ahead_m=0.125, lean=-0.3, pitch_rate=-2.0)
+    limits = LandingPosture(max_feet_ahead_m=0.025, min_lean=-0.1, min_pitch_rate=-1.0)
+    assert limits.excess(jump) == pytest.approx(0.1 + 0.2 + 0.2 * 1.0)
+    assert isinstance(jump, Jump)
+
+
+def test_the_reference_posture_is_read_at_the_landing_frame(sample_data):
+    from pipeline.common import quat
+    from pipeline.priors.open_loop import DOWN, OpenLoopJumps
+    from pipeline.priors.push_prior import flight_frames
+
+    _, landing = flight_frames(sample_data)
+    jumps = OpenLoopJumps(sample_data.motion, load_robot_config(), 0, 31)
+    limits = jumps.reference_posture(landing, feet_margin_m=0.1, lean_margin=0.3, pitch_rate_margin=0.6)
+    segment = jumps.segment
+    qpos, qvel = segment.qpos()[landing], segment.qvel()[landing]
+    rear_ankle_x = min(segment.body_pos[landing, segment.body_index(name), 0] for name in ("left_ankle", "right_ankle"))
+    assert limits.max_feet_ahead_m == pytest.approx(rear_ankle_x - qpos[0] + 0.1)
+    assert limits.min_lean == pytest.approx(quat.inverse_rotate(qpos[3:7], DOWN)[0] - 0.3)
+    assert limits.min_pitch_rate == pytest.approx(qvel[4] - 0.6)
 
 
 def test_the_push_curves_are_linear_between_the_configured_knots(sample_data):
@@ -162,16 +196,12 @@ def test_prior_round_trips_and_bad_files_are_named(tmp_path, sample_data, sample
 
 
 def test_a_task_without_a_flight_is_refused(sample_data):
-    import dataclasses
-
     no_flight = dataclasses.replace(sample_data, keyframe_labels=tuple("" for _ in sample_data.keyframe_labels))
     with pytest.raises(PipelineInputError, match="push_prior: needs a take-off"):
         build_push_prior(no_flight, PushPriorConfig(enabled=True, iterations=1, population=2), log=None)
 
 
 def test_env_adds_the_push_to_the_zero_action_per_sample(sample_data, sample_prior):
-    import dataclasses
-
     import torch
 
     from pipeline.envs.config import EnvConfig
@@ -204,8 +234,6 @@ def test_the_stage_writes_the_prior_and_the_edited_variants_train_with_it(tmp_pa
     """`push_prior` stage on the sample's D_edit (a tiny search), then what train/evaluate/export load:
     the prior for variants that track the edit, none for the one that tracks the unedited clip."""
     import argparse
-    import dataclasses
-
     from pipeline import paths
     from pipeline.config import load_params
     from pipeline.keyframes.datasets import write_tracking_dataset
@@ -236,8 +264,6 @@ def zero_action_landings(data, prior, num_envs: int = 8):
     """Rolls out the pushed zero action (no randomisation, episodes from t = 0), one world per swept ψ
     sample. Returns (ψ, where each world's rear ankle touched down after its first flight of at least
     0.1 s (NaN: it never did), where the reference's rear ankle lands unedited)."""
-    import dataclasses
-
     import torch
 
     from pipeline.envs.config import EnvConfig
@@ -286,8 +312,6 @@ def test_the_far_jumps_prior_measures_its_jumps_where_the_env_lands_them():
     lands, so each pushed world landed at the gap's far edge, short of its target. Here each world of
     the env replays exactly one of the search's measured rollouts (w held constant, on flat ground) and
     its landing must be the ψ the prior recorded for it."""
-    import dataclasses
-
     from pipeline.human.importers import load_human_motion
     from pipeline.keyframes.config import TerrainConfig, load_tasks, load_yaml_strict
     from pipeline.keyframes.edit import build_tracking_data

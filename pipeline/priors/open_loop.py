@@ -9,9 +9,10 @@ shoulder pitch, elbow): a push-off and an arm swing, the degrees of freedom a lo
 Each rollout is measured over its first flight of at least 0.1 s (`Jump`): how far the feet travel
 (the rear ankle at touch-down minus the front ankle at take-off) and where the rear ankle lands,
 its timing, the trunk's tilt and pitch rate at touch-down, the pelvis's height in the air,
-where the capture point lies against the soles, and whether the training env's fall checks
-(`envs/config.py: TerminationConfig`, relative to the reference) hold until 0.1 s after the
-touch-down. `cross_entropy_search` finds the offsets that jump furthest within those limits.
+where the capture point lies against the soles, the landing posture (feet ahead of the pelvis, trunk
+lean), and whether the training env's fall checks (`envs/config.py: TerminationConfig`, relative to the
+reference) hold until 0.1 s after the touch-down. `cross_entropy_search` finds the offsets that jump
+furthest within those limits.
 
 Used by `priors/push_prior.py` (the push the env adds to the zero action) and by
 `benchmarks/jump_ceiling.py` (how far the robot can jump at all).
@@ -50,24 +51,47 @@ class Jump:
     apex_pelvis_m: float
     capture_outside_m: float  # how far the capture point lies outside the soles at touch-down (0: inside)
     fall_check_excess: float  # the training env's fall checks, worst excess until 0.1 s after touch-down (0: passed)
+    feet_ahead_m: float = 0.0  # rear ankle ahead of the pelvis at touch-down (x)
+    lean: float = 0.0          # gravity's x in the pelvis frame at touch-down: + leaning forward
 
-    def penalty(self, land_by_s: float, capture_allowance_m: float, fall_checks: bool = False) -> float:
-        return (2.0 * max(0.0, self.tilt - MAX_TILT)
+    def penalty(self, land_by_s: float, capture_allowance_m: float, fall_checks: bool = False,
+                posture: LandingPosture | None = None) -> float:
+        return ((5.0 * posture.excess(self) if posture is not None else 0.0)
+                + 2.0 * max(0.0, self.tilt - MAX_TILT)
                 + (5.0 * self.fall_check_excess if fall_checks else 0.0)
                 + 0.2 * max(0.0, abs(self.pitch_rate) - MAX_PITCH_RATE)
                 + 5.0 * max(0.0, MIN_FLIGHT_PELVIS_M - self.lowest_pelvis_m)
                 + 5.0 * max(0.0, self.capture_outside_m - capture_allowance_m)
                 + 10.0 * max(0.0, self.landing_s - land_by_s))
 
-    def landable(self, land_by_s: float, capture_allowance_m: float, fall_checks: bool = False) -> bool:
-        return self.penalty(land_by_s, capture_allowance_m, fall_checks) == 0.0
+    def landable(self, land_by_s: float, capture_allowance_m: float, fall_checks: bool = False,
+                 posture: LandingPosture | None = None) -> bool:
+        return self.penalty(land_by_s, capture_allowance_m, fall_checks, posture) == 0.0
 
     def __str__(self) -> str:
         return (f"feet {self.feet_m:.2f} m (pelvis {self.pelvis_m:.2f} m), take-off {self.takeoff_s:.2f} s, "
                 f"touch-down {self.landing_s:.2f} s, tilt {self.tilt:.2f}, pitch rate {self.pitch_rate:+.1f} rad/s, "
                 f"pelvis {self.lowest_pelvis_m:.2f}-{self.apex_pelvis_m:.2f} m in the air, "
+                f"feet {self.feet_ahead_m:+.2f} m ahead of the pelvis, lean {self.lean:+.2f}, "
                 f"capture point {self.capture_outside_m * 100:.0f} cm outside the soles, "
                 f"{'passes' if self.fall_check_excess == 0 else f'fails ({self.fall_check_excess:.2f})'} the env's fall checks")
+
+
+@dataclass(frozen=True)
+class LandingPosture:
+    """Limits on the touch-down's posture, from the reference's at its own landing (`OpenLoopJumps.
+    reference_posture`). A search that scores where the feet land can reach them forward from a flight that
+    is no longer, and land sitting back: the far jump's prior landed its ψ ≥ 0.9 m jumps upright or leaning
+    back with the feet 0.3–0.5 m ahead of the pelvis and pitching backward at 1–2 rad/s, where the reference
+    lands leaning forward (0.30) with its feet 0.22 m ahead (session 35)."""
+
+    max_feet_ahead_m: float
+    min_lean: float
+    min_pitch_rate: float  # rad/s, + forward
+
+    def excess(self, jump: Jump) -> float:
+        return (max(0.0, jump.feet_ahead_m - self.max_feet_ahead_m) + max(0.0, self.min_lean - jump.lean)
+                + 0.2 * max(0.0, self.min_pitch_rate - jump.pitch_rate))
 
 
 class OpenLoopJumps:
@@ -165,6 +189,14 @@ class OpenLoopJumps:
         sites = sensors[:, :, slice(*self.layout.site_pos)].reshape(len(curves), contact.shape[1], -1, 3)
         return [self._measure(contact[p], qpos[p], qvel[p], sites[p], state[p]) for p in range(len(curves))]
 
+    def reference_posture(self, frame: int, feet_margin_m: float, lean_margin: float,
+                          pitch_rate_margin: float) -> LandingPosture:
+        """The limits a touch-down meets when its posture is within the margins of the reference's at `frame`."""
+        qpos, qvel = self.segment.qpos()[frame], self.segment.qvel()[frame]
+        feet_ahead = float(self.segment.body_pos[frame, self.ankles, 0].min() - qpos[0])
+        lean = float(quat.inverse_rotate(qpos[3:7], DOWN)[0])
+        return LandingPosture(feet_ahead + feet_margin_m, lean - lean_margin, float(qvel[4]) - pitch_rate_margin)
+
     def reference_capture_outside(self, frame: int) -> float:
         """`capture_outside` of the reference itself at `frame` of the motion (its touch-down)."""
         d = self.scratch
@@ -193,7 +225,8 @@ class OpenLoopJumps:
             b = a + touch[0]
             if (b - a) * self.dt < MIN_FLIGHT_S:
                 continue
-            gravity_xy = np.linalg.norm(quat.inverse_rotate(qpos[b, 3:7], DOWN)[:2])
+            gravity = quat.inverse_rotate(qpos[b, 3:7], DOWN)
+            gravity_xy = np.linalg.norm(gravity[:2])
             return Jump(feet_m=float(sites[b, self.ankles, 0].min() - sites[a - 1, self.ankles, 0].max()),
                         landing_x=float(sites[b, self.ankles, 0].min()),
                         pelvis_m=float(np.linalg.norm(qpos[b, :2] - qpos[a - 1, :2])),
@@ -201,21 +234,22 @@ class OpenLoopJumps:
                         pitch_rate=float(qvel[b, 4]), lowest_pelvis_m=float(qpos[a:b, 2].min()),
                         apex_pelvis_m=float(qpos[a:b, 2].max()),
                         capture_outside_m=self.capture_outside(state[b], sites[b, self.ankles, 0]),
-                        fall_check_excess=self.fall_check_excess(qpos, b + int(0.1 / self.dt)))
+                        fall_check_excess=self.fall_check_excess(qpos, b + int(0.1 / self.dt)),
+                        feet_ahead_m=float(sites[b, self.ankles, 0].min() - qpos[b, 0]), lean=float(gravity[0]))
         return None
 
 
 def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowance_m: float, iterations: int,
                          population: int, rng: np.random.Generator, fall_checks: bool = False,
-                         log=print, landable_only: bool = False,
-                         distance: str = "feet") -> tuple[np.ndarray, Jump | None]:
+                         log=print, landable_only: bool = False, distance: str = "feet",
+                         posture: LandingPosture | None = None) -> tuple[np.ndarray, Jump | None]:
     """Maximises distance − penalty over the offsets; returns the best offsets and their jump (None if
     no rollout flew at all). `distance`: "feet", the feet's travel in the air (`Jump.feet_m`: what the
     robot can jump), or "landing", where the rear foot lands (`Jump.landing_x`: what a gap anchored in
     the motion's frame asks). `fall_checks`: also penalise breaking the training env's fall checks.
     `landable_only`: return the furthest jump with no penalty at all (None if there was none). Without
     it a jump that breaks a limit by a hair can outscore every landable one, as a score it is; a caller
-    that needs a jump it can use asks for this."""
+    that needs a jump it can use asks for this. `posture`: also penalise a touch-down outside these limits."""
     if distance not in ("feet", "landing"):
         raise ValueError(f"distance must be 'feet' or 'landing', got {distance!r}")
     reach = (lambda j: j.feet_m) if distance == "feet" else (lambda j: j.landing_x)
@@ -228,12 +262,13 @@ def cross_entropy_search(jumps: OpenLoopJumps, land_by_s: float, capture_allowan
         offsets = mean + std * rng.standard_normal((population, *shape))
         offsets[0] = best_offsets  # keep the best so far in every batch
         found = jumps.jumps(offsets)
-        scores = np.array([reach(j) - j.penalty(land_by_s, capture_allowance_m, fall_checks) if j else -1.0 for j in found])
+        scores = np.array([reach(j) - j.penalty(land_by_s, capture_allowance_m, fall_checks, posture) if j else -1.0
+                           for j in found])
         order = np.argsort(-scores)
         for i in order:
             if scores[i] <= best_score:
                 break
-            if landable_only and not (found[i] and found[i].landable(land_by_s, capture_allowance_m, fall_checks)):
+            if landable_only and not (found[i] and found[i].landable(land_by_s, capture_allowance_m, fall_checks, posture)):
                 continue
             best_score, best_offsets, best_jump = scores[i], offsets[i].copy(), found[i]
             break

@@ -29,6 +29,7 @@ one (`push_prior: {enabled: true}` in params.yaml).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -66,6 +67,13 @@ class PushPriorConfig:
     knots: int = 12
     # The search's touch-down may be this much later than the reference's landing (s).
     land_by_slack_s: float = 0.04
+    # Opt-in: the search's touch-down must also be within these margins of the reference's posture at its
+    # landing keyframe: feet no further ahead of the pelvis (m), trunk leaning forward no less (gravity's x in
+    # the pelvis frame), pitching backward no faster (rad/s). See open_loop.LandingPosture.
+    reference_posture: bool = False
+    posture_feet_ahead_margin_m: float = 0.1
+    posture_lean_margin: float = 0.3
+    posture_pitch_rate_margin: float = 0.6
 
 
 @dataclass
@@ -126,12 +134,14 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
 
     land_by = (landing - start) / fps + cfg.land_by_slack_s
     allowance = jumps.reference_capture_outside(landing)
+    posture = (jumps.reference_posture(landing, cfg.posture_feet_ahead_margin_m, cfg.posture_lean_margin,
+                                       cfg.posture_pitch_rate_margin) if cfg.reference_posture else None)
     began = time.time()
     log(f"push prior for {data.task}: frames {start}..{start + steps} (take-off {takeoff}, landing {landing}), "
         f"{cfg.iterations} iterations of {cfg.population} rollouts")
     offsets, jump = cross_entropy_search(jumps, land_by, allowance, cfg.iterations, cfg.population,
                                          np.random.default_rng(cfg.seed), fall_checks=True, log=log,
-                                         landable_only=True, distance="landing")
+                                         landable_only=True, distance="landing", posture=posture)
     if jump is None:
         raise PipelineInputError(f"task {data.task}", "push_prior",
                                  f"none of the search's {cfg.iterations} x {cfg.population} rollouts landed within "
@@ -162,6 +172,7 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
         "max_abs_offset_rad": float(np.abs(table).max()), "search_seconds": round(time.time() - began, 1),
         "config": {"iterations": cfg.iterations, "population": cfg.population, "seed": cfg.seed, "knots": cfg.knots,
                    "land_by_slack_s": cfg.land_by_slack_s},
+        "landing_posture_limits": None if posture is None else dataclasses.asdict(posture),
         "measured": [{"w": float(w), "psi": psi_of(j) if j else None, "passes_fall_checks": ok}
                      for w, j, ok in zip(weights, measured, passes)],
     }
