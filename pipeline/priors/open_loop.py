@@ -81,9 +81,10 @@ class Jump:
 class LandingPosture:
     """Limits on the touch-down's posture, from the reference's at its own landing (`OpenLoopJumps.
     reference_posture`). A search that scores where the feet land can reach them forward from a flight that
-    is no longer, and land sitting back: the far jump's prior landed its ψ ≥ 0.9 m jumps upright or leaning
-    back with the feet 0.3–0.5 m ahead of the pelvis and pitching backward at 1–2 rad/s, where the reference
-    lands leaning forward (0.30) with its feet 0.22 m ahead (session 35)."""
+    is no longer, and land sitting back: learn_cpu's far-jump prior (2.3 s segment) landed its ψ ≥ 0.88 m
+    jumps upright or leaning back (lean −0.28 to +0.09) with the feet 0.21–0.49 m ahead of the pelvis, most
+    of them pitching backward at 1–2 rad/s, where the reference lands leaning forward (+0.30) with its feet
+    0.22 m ahead, pitching back at 0.59 rad/s (benchmarks/RESULTS.md, session 35)."""
 
     max_feet_ahead_m: float
     min_lean: float
