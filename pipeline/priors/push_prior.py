@@ -69,7 +69,9 @@ class PushPriorConfig:
     land_by_slack_s: float = 0.04
     # Opt-in: the search's touch-down must also be within these margins of the reference's posture at its
     # landing keyframe: feet no further ahead of the pelvis (m), trunk leaning forward no less (gravity's x in
-    # the pelvis frame), pitching backward no faster (rad/s). See open_loop.LandingPosture.
+    # the pelvis frame), pitching backward no faster (rad/s). See open_loop.LandingPosture. Off: on learn_cpu's
+    # 2.3 s far-jump segment the policy trained on such a prior read 0.000 against 0.094 (benchmarks/RESULTS.md,
+    # session 35); only the push at w = 1 is searched, and the scaled ones still land in any posture.
     reference_posture: bool = False
     posture_feet_ahead_margin_m: float = 0.1
     posture_lean_margin: float = 0.3
