@@ -37,7 +37,8 @@ EOF
 }
 
 pack() {
-    local python_version=${1:-3.12}
+    local python_version=${1:-3.12} packages
+    packages=$(pins)
     [ -f "$VENDOR/xmls/g1.xml" ] || { echo "gpu kit: no G1 model in $VENDOR: run make setup first" >&2; exit 1; }
     staging=$(mktemp -d)
     trap 'rm -rf "$staging"' EXIT
@@ -47,7 +48,7 @@ pack() {
     python3 -m pip install --quiet --no-deps --only-binary=:all: --no-compile --target "$staging/site" \
         --python-version "$python_version" --implementation cp \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
-        --platform manylinux2014_x86_64 $(pins)
+        --platform manylinux2014_x86_64 $packages
     rm -rf "$staging/site/warp/bin/warp-clang.so" "$staging/site/warp/examples" "$staging/site/bin"
     rm -rf "$KIT" "$KIT.partial"
     mkdir -p "$KIT.partial"
@@ -62,19 +63,22 @@ pack() {
     done
     rm "$KIT.partial/SHA256SUMS"
     mv "$KIT.partial" "$KIT"
-    echo "gpu kit for Python $python_version: $(pins)"
+    echo "gpu kit for Python $python_version: $packages"
     du -sh "$KIT"/*
 }
 
-stash() {
+keep_carried_parts() {  # this call's carried parts, beside those earlier calls kept
     mkdir -p "$STASH"
-    cp "$KIT"/*/kit.tar.xz.* "$KIT"/*/SHA256SUMS "$STASH"/
+    cp "$KIT"/*/kit.tar.xz.* "$KIT"/*/SHA256SUMS "$STASH"/ 2>/dev/null
+}
+
+stash() {
+    keep_carried_parts || { echo "gpu kit: no part carried in $KIT (carry one of .gpu_kit/N)" >&2; exit 1; }
     echo "stashed: $(cd "$STASH" && ls kit.tar.xz.*)"
 }
 
 install() {
-    mkdir -p "$STASH"
-    cp "$KIT"/*/kit.tar.xz.* "$KIT"/*/SHA256SUMS "$STASH"/ 2>/dev/null || true
+    keep_carried_parts || true  # every part may have been stashed already
     (cd "$STASH" && sha256sum --check --quiet SHA256SUMS) \
         || { echo "gpu kit: a part is missing or damaged in $STASH (stash each part in its own call first)" >&2; exit 1; }
     local unpacked=$STASH/unpacked

@@ -33,12 +33,15 @@ bring_back() {  # $OUT takes 8 files of 16 MiB, 64 MiB in all: the policies firs
         [ -f "$pointer" ] && latest+=("${pointer#models/}" "$(dirname "${pointer#models/}")/$(cat "$pointer")")
     done
     room=$(( (60 << 20) - $(cat "$OUT"/models_"$task".tar.* | wc -c) ))
-    if [ ${#latest[@]} -gt 0 ] && [ "$(tar -C models -cf - "${latest[@]}" | wc -c)" -le "$room" ]; then
-        tar -C models -cf - "${latest[@]}" | split -b 15M -d - "$OUT/checkpoints_$task.tar."
+    [ ${#latest[@]} -gt 0 ] && tar -C models -cf "$OUT/.checkpoints.tar" "${latest[@]}"
+    if [ ! -f "$OUT/.checkpoints.tar" ]; then
+        echo "[device_train] no checkpoint yet: policies only"
+    elif [ "$(stat -c %s "$OUT/.checkpoints.tar")" -le "$room" ]; then
+        split -b 15M -d "$OUT/.checkpoints.tar" "$OUT/checkpoints_$task.tar."
     else
         echo "[device_train] the latest checkpoints do not fit in what \$OUT brings back: policies only"
     fi
-    rm "$OUT/.policies"
+    rm -f "$OUT/.policies" "$OUT/.checkpoints.tar"
     ls -la "$OUT"
 }
 trap bring_back EXIT

@@ -227,16 +227,17 @@ class OpenLoopJumps:
             if (b - a) * self.dt < MIN_FLIGHT_S:
                 continue
             gravity = quat.inverse_rotate(qpos[b, 3:7], DOWN)
-            gravity_xy = np.linalg.norm(gravity[:2])
-            return Jump(feet_m=float(sites[b, self.ankles, 0].min() - sites[a - 1, self.ankles, 0].max()),
-                        landing_x=float(sites[b, self.ankles, 0].min()),
+            ankles_x = sites[b, self.ankles, 0]
+            rear_ankle_x = float(ankles_x.min())
+            return Jump(feet_m=rear_ankle_x - float(sites[a - 1, self.ankles, 0].max()), landing_x=rear_ankle_x,
                         pelvis_m=float(np.linalg.norm(qpos[b, :2] - qpos[a - 1, :2])),
-                        takeoff_s=float(a * self.dt), landing_s=float(b * self.dt), tilt=float(gravity_xy),
+                        takeoff_s=float(a * self.dt), landing_s=float(b * self.dt),
+                        tilt=float(np.linalg.norm(gravity[:2])),
                         pitch_rate=float(qvel[b, 4]), lowest_pelvis_m=float(qpos[a:b, 2].min()),
                         apex_pelvis_m=float(qpos[a:b, 2].max()),
-                        capture_outside_m=self.capture_outside(state[b], sites[b, self.ankles, 0]),
+                        capture_outside_m=self.capture_outside(state[b], ankles_x),
                         fall_check_excess=self.fall_check_excess(qpos, b + int(0.1 / self.dt)),
-                        feet_ahead_m=float(sites[b, self.ankles, 0].min() - qpos[b, 0]), lean=float(gravity[0]))
+                        feet_ahead_m=rear_ankle_x - float(qpos[b, 0]), lean=float(gravity[0]))
         return None
 
 
