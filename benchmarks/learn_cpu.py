@@ -180,12 +180,16 @@ def success_by_range(episodes: list, psi_ranges: dict) -> str:
 
 
 def report(label: str, ev: dict, episodes: list, data) -> None:
+    from pipeline.evaluation.metrics import endings
+    from pipeline.evaluation.report import endings_line
+
     print(f"[learn_cpu] {label}: success {ev['success'] / 100:.3f}, E_g-bpe {ev['e_g_bpe']:.0f} mm, "
           f"E_l-bpe {ev['e_l_bpe']:.0f} mm, ψ reached {ev['psi_reached']:.2f} m (largest by a successful "
           f"episode {ev['psi_reached_max']:.2f} m; clip {data.psi_raw:.2f} m)")
     print(f"[learn_cpu]   by ψ (m): {success_by_psi(episodes)}")
     print(f"[learn_cpu]   by the paper's ranges: {success_by_range(episodes, data.psi_ranges)}")
     print(f"[learn_cpu]   keyframe by keyframe, % reached (mean error mm): {funnel_line(episodes, data)}")
+    print(f"[learn_cpu]   {endings_line(endings(episodes))}")
 
 
 def funnel_line(episodes: list, data) -> str:

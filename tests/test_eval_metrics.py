@@ -161,3 +161,31 @@ def test_keyframe_funnel_counts_by_hand():
     assert [r["e_g_bpe"] for r in rows] == pytest.approx([200.0, 800.0, 150.0])  # means over who reached k
     assert rows[-1]["on_track"] == pytest.approx(aggregate([good, drifting, fallen])["success"])
     assert math.isnan(keyframe_funnel([fallen], num_keyframes=3)[2]["e_g_bpe"])
+
+
+def test_endings_classify_and_count():
+    """How an episode ended, from the checks that fired and its last tilt error against the reference."""
+    from pipeline.evaluation.metrics import classify_ending, endings
+
+    assert classify_ending((), None) == "completed"  # ran to the motion's end
+    assert classify_ending(None, None) == "unknown"  # cut short, or an env that does not say
+    assert classify_ending(("tilt",), np.array([0.9, 0.1])) == "forward"
+    assert classify_ending(("tilt", "base_height"), np.array([-0.5, 0.2])) == "backward"
+    assert classify_ending(("tilt",), np.array([0.3, -0.6])) == "sideways"
+    assert classify_ending(("base_height",), np.array([0.2, 0.1])) == "sank"  # 0.22 from the reference's lean
+    assert classify_ending(("base_height",), None) == "unknown"
+
+    def ended(by, tilt):
+        record = _record(np.full((3, 2), 0.1), crossed=[False, True, True])
+        record.ended_by, record.end_tilt_error = by, None if tilt is None else np.array(tilt)
+        return episode_metrics(record)
+
+    episodes = [ended((), None), ended(("tilt",), [0.9, 0.0]), ended(("tilt", "base_height"), [-0.8, 0.0]),
+                ended(("base_height",), [0.1, 0.0])]
+    assert [e.ending for e in episodes] == ["completed", "forward", "backward", "sank"]
+    out = endings(episodes)
+    assert out["episodes"] == 4
+    assert out["ending"] == {"completed": 25.0, "forward": 25.0, "backward": 25.0, "sideways": 0.0, "sank": 25.0,
+                             "unknown": 0.0}
+    assert out["check"] == {"tilt": 50.0, "base_height": 50.0, "keyframe_error": 0.0}
+    assert sum(out["ending"].values()) == pytest.approx(100.0)

@@ -9,7 +9,7 @@ import torch
 from pipeline.common.errors import PipelineInputError
 from pipeline.evaluation.config import EvalConfig
 from pipeline.evaluation.evaluate import PolicyRunner, evaluate_policy, range_mask, rollout, spread_in_ranges
-from pipeline.evaluation.metrics import aggregate, episode_metrics, pooled_episodes
+from pipeline.evaluation.metrics import aggregate, endings, episode_metrics, pooled_episodes
 from pipeline.evaluation.report import results_table
 from test_env import data, quiet_cfg  # noqa: F401  (a 61-frame standing clip; targets moved forward by ψ)
 
@@ -44,6 +44,9 @@ def test_rollout_counts_every_world_equally():
     assert len(by_psi[1.0]) == 3 and len(by_psi[2.0]) == 3
     out = aggregate([episode_metrics(r) for r in records])
     assert out["success"] == 50.0  # the falling world never reaches its keyframes
+    # this env does not say which check ended world 1's episodes; world 0's ran to their end
+    assert [episode_metrics(r).ending for r in by_psi[1.0]] == ["completed"] * 3
+    assert [episode_metrics(r).ending for r in by_psi[2.0]] == ["unknown"] * 3
     assert out["e_g_bpe"] == pytest.approx(200.0) and out["e_l_bpe"] == pytest.approx(10.0)
     assert out["e_smth"] == pytest.approx(1.0)
 
@@ -77,8 +80,12 @@ def test_real_env_smoke_and_bad_range():
     assert math.isfinite(doc["ranges"]["overall"]["e_l_bpe"]["mean"])
     assert [r["time_s"] for r in doc["keyframe_funnel"]] == pytest.approx(data.keyframe_frames / data.motion.fps)
     assert doc["keyframe_funnel"][-1]["on_track"] == pytest.approx(doc["ranges"]["overall"]["success"]["mean"])
+    doc["endings"] = endings(pooled_episodes(result.runs))
+    assert doc["endings"]["episodes"] == 8 and sum(doc["endings"]["ending"].values()) == pytest.approx(100.0)
+    assert doc["endings"]["ending"]["unknown"] == 0.0  # the real env always says how an episode ended
     table = results_table({"adamimic": doc})
     assert "| adamimic |" in table and "## adamimic: keyframe by keyframe" in table
+    assert f"How the 8 episodes ended: {doc['endings']['ending']['completed']:.0f} % ran to the end" in table
     data.psi_ranges = {"easy": [(5.0, 6.0)], "hard": [(1.5, 2.0)]}
     with pytest.raises(PipelineInputError, match="psi.easy"):
         evaluate_policy(policy, data, cfg, default_env_factory(EnvConfig(), cfg))
@@ -154,3 +161,34 @@ def test_psi_reached_from_a_real_env(data):  # noqa: F811
     assert {round(m.psi, 2) for m in metrics} <= {0.0, 0.05, 0.1}
     for m in metrics:
         assert m.success and m.psi_reached == pytest.approx(0.0, abs=0.02)
+
+
+def test_endings_from_a_real_env(data):  # noqa: F811
+    """The env's checks and tilt error reach the metric: an upright robot against a reference that leans
+    back past the tilt check fell forward of it, one against a reference leaning forward fell backward, one
+    below a reference lifted 1 m (upright) sank, and one left alone ran to the end."""
+    from pipeline.envs.tracking_env import TrackingEnv
+    from pipeline.evaluation.metrics import endings
+
+    def ending(edit, **cfg) -> list:
+        env = TrackingEnv(quiet_cfg(**cfg), data, num_envs=2)
+        env.termination_threshold = math.inf
+        edit(env)
+        hold = lambda obs: (torch.zeros(obs.shape[0], env.action_dim), None, None)  # noqa: E731
+        records = rollout(env, hold, episodes_per_env=1, num_keyframes=data.num_keyframes)
+        return [episode_metrics(r) for r in records]
+
+    def lean(x):
+        return lambda env: env.ref_gravity_xy.copy_(torch.tensor([x, 0.0]).expand_as(env.ref_gravity_xy))
+
+    def lift(env):
+        env.ref_root_pos[:, 2] += 1.0
+
+    assert [e.ending for e in ending(lean(-0.9))] == ["forward"] * 2
+    backward = ending(lean(0.9))
+    assert [e.ending for e in backward] == ["backward"] * 2 and all(e.ended_by == ("tilt",) for e in backward)
+    sank = ending(lift, terminations={"min_base_height": 2.0})  # the height check then follows the reference
+    assert [e.ending for e in sank] == ["sank"] * 2 and all(e.ended_by == ("base_height",) for e in sank)
+    stood = ending(lambda env: None)
+    assert [e.ending for e in stood] == ["completed"] * 2
+    assert endings(stood + sank)["ending"]["sank"] == 50.0

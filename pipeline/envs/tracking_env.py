@@ -474,6 +474,7 @@ class TrackingEnv:
             "termination_threshold": self.termination_threshold,
             # which checks fired (several may on one step): diagnostics for the trainer's log
             "terminated_by": {"keyframe_error": s["by_keyframe"], "tilt": s["by_tilt"], "base_height": s["by_height"]},
+            "tilt_error_xy": s["tilt_error_xy"],  # which way a fall went (evaluation's endings)
         }
         sparse, dense = s["sparse"], s["dense"]
         self.episodes_finished = self.episodes_finished + done.sum()
@@ -572,7 +573,8 @@ class TrackingEnv:
 
         # ---- terminations
         tc = cfg.terminations
-        tilt_xy = gravity[:, :2] - self.ref_gravity_xy[frame] if tc.relative_to_reference else gravity[:, :2]
+        tilt_error_xy = gravity[:, :2] - self.ref_gravity_xy[frame]  # + x: leaning further forward than the reference
+        tilt_xy = tilt_error_xy if tc.relative_to_reference else gravity[:, :2]
         by_tilt = (tilt_xy**2).sum(-1) > tc.max_tilt**2
         by_height = torch.zeros_like(by_tilt)
         if self.height_termination:
@@ -590,7 +592,7 @@ class TrackingEnv:
             "by_keyframe": by_keyframe, "by_tilt": by_tilt, "by_height": by_height,
             "crossed": crossed, "crossed_kf": torch.where(crossed, k, -1), "next_kf": torch.where(crossed, k + 1, self.next_kf),
             "error_w": error_w, "keyframe_error_w": keyframe_error_w, "keyframe_miss_w": keyframe_miss_w,
-            "local_error": local_err2.sqrt(), "joint_acc": joint_acc, "gravity": gravity,
+            "local_error": local_err2.sqrt(), "joint_acc": joint_acc, "gravity": gravity, "tilt_error_xy": tilt_error_xy,
             # copies: the backend refreshes its state views in place at the next step
             "joint_pos": joint_pos.clone(), "joint_vel": joint_vel.clone(),
         }

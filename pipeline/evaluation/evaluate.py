@@ -109,8 +109,9 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
 
     Reads from `info` (env contract): keyframe_crossed, body_pos_error_w, body_pos_error_local,
     joint_acc, phase, psi; and info["keyframe_body_error_w"] when the env provides the error
-    against the exact keyframe target (else body_pos_error_w on the crossing step), and
-    info["keyframe_miss_w"] (mean body position minus the keyframe target) when it has it.
+    against the exact keyframe target (else body_pos_error_w on the crossing step),
+    info["keyframe_miss_w"] (mean body position minus the keyframe target) when it has it, and
+    info["terminated_by"] / info["tilt_error_xy"] for how each episode ended when it has them.
     """
     n = env.num_envs
     obs = env.reset()
@@ -132,7 +133,10 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
         psi = _np(info["psi"])
         dphi_np = _np(dphi) if dphi is not None else np.zeros(n)
         adapter_np = _np(adapter) if adapter is not None else np.full(n, np.nan)
-        done = _np(terminated).astype(bool) | _np(truncated).astype(bool)
+        ended = _np(terminated).astype(bool)
+        done = ended | _np(truncated).astype(bool)
+        ended_by = _ended_by(info, ended)
+        tilt = _np(info["tilt_error_xy"]) if "tilt_error_xy" in info else None
         if on_step is not None:
             on_step(env, info, done)  # for done worlds the env already holds the next episode
         for i in np.flatnonzero(finished < episodes_per_env):
@@ -141,6 +145,8 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
             b["acc"].append(acc[i]); b["phase"].append(phase[i]); b["dphi"].append(dphi_np[i])
             b["adapter"].append(adapter_np[i]); b["psi"] = float(psi[i]); b["miss"].append(miss[i])
             if done[i]:
+                b["ended_by"] = ended_by[i]
+                b["end_tilt_error"] = tilt[i] if tilt is not None else None
                 records.append((int(finished[i]), int(i), _to_record(b, num_keyframes)))
                 buffers[i] = _empty_buffer()
                 finished[i] += 1
@@ -156,9 +162,21 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
     return [record for _, _, record in sorted(records, key=lambda r: r[:2])]
 
 
+def _ended_by(info: dict, terminated: np.ndarray) -> list[tuple[str, ...] | None]:
+    """Per world, the env checks that fired this step (only read where an episode ended): () for one that
+    was not terminated, None for a terminated one whose env does not say why (no info["terminated_by"], or
+    none of its checks fired)."""
+    fired = {name: _np(mask).astype(bool) for name, mask in (info.get("terminated_by") or {}).items()}
+    out = []
+    for i, term in enumerate(terminated):
+        names = tuple(name for name, mask in fired.items() if mask[i])
+        out.append(names if names or not term else None)
+    return out
+
+
 def _empty_buffer() -> dict[str, list]:
     return {"world": [], "local": [], "crossed": [], "acc": [], "phase": [], "dphi": [], "adapter": [], "miss": [],
-            "psi": 0.0}
+            "psi": 0.0, "ended_by": None, "end_tilt_error": None}
 
 
 def _to_record(b: dict, num_keyframes: int) -> EpisodeRecord:
@@ -167,6 +185,7 @@ def _to_record(b: dict, num_keyframes: int) -> EpisodeRecord:
         keyframe_crossed=np.array(b["crossed"]), joint_acc=np.stack(b["acc"]), psi=b["psi"],
         num_keyframes=num_keyframes, phase=np.array(b["phase"]), phase_rate_offset=np.array(b["dphi"]),
         adapter_action_norm=np.array(b["adapter"]), keyframe_miss=np.stack(b["miss"]),
+        ended_by=b["ended_by"], end_tilt_error=b["end_tilt_error"],
     )
 
 

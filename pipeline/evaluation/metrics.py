@@ -10,7 +10,9 @@ Definitions (AdaMimic, "Evaluation metrics"):
 Not in the paper: ψ reached (`PsiReach`), the task variable the robot actually achieved, e.g. how far
 a far jump landed; per range its mean and the farthest a successful episode reached. And the keyframe
 funnel (`keyframe_funnel`): how many episodes reached each keyframe and were still on track there,
-which says where a policy that fails loses its episodes (a fall after the landing, a missed take-off).
+which says where a policy that fails loses its episodes (a fall after the landing, a missed take-off), and the
+endings (`endings`): how they were lost (ran to the end, or fell forward, backward, sideways or sank, and which
+of the env's checks ended them).
 
 Errors are pooled: over a set of episodes, E_g-bpe is the mean over every (episode, keyframe,
 body) sample, E_l-bpe over every (episode, step, body) sample, E_smth over every (episode, step,
@@ -20,6 +22,7 @@ aggregation over any grouping (ψ range, ψ bin) is exact.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,6 +60,10 @@ class EpisodeRecord:
     phase_rate_offset: np.ndarray | None = None
     adapter_action_norm: np.ndarray | None = None
     keyframe_miss: np.ndarray | None = None  # (T, 3) mean body position − keyframe target on crossing rows
+    # The env's checks that ended the episode (info["terminated_by"]): () when it ran to the motion's end,
+    # None when not known (an env that does not say, or a rollout cut short by its step limit).
+    ended_by: tuple[str, ...] | None = None
+    end_tilt_error: np.ndarray | None = None  # (2,) info["tilt_error_xy"] on the last step
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -91,6 +98,31 @@ class EpisodeMetrics:
     joint_acc_count: int
     psi_reached: float = float("nan")  # see PsiReach; nan when not measurable
     keyframe_errors: tuple[float, ...] = ()  # body-mean world error (m) at each keyframe crossed, in order
+    ending: str = "unknown"  # one of ENDINGS (`classify_ending`)
+    ended_by: tuple[str, ...] = ()  # the env's checks that ended it
+
+
+# How an episode ended: it ran to the motion's end, or a fall check ended it, and then which way the pelvis
+# had tipped against the reference's (or not: it sank, knees folding or sitting down, while still upright).
+ENDINGS = ("completed", "forward", "backward", "sideways", "sank", "unknown")
+SANK_TILT = 0.3  # |tilt error| below this (about 17° past the reference's lean) is not a tip-over
+
+
+def classify_ending(ended_by: tuple[str, ...] | None, tilt_error: np.ndarray | None) -> str:
+    """One of ENDINGS from the checks that ended an episode and its last tilt error against the reference
+    (x + forward, y + left, in the pelvis frame)."""
+    if ended_by is None:
+        return "unknown"
+    if not ended_by:
+        return "completed"
+    if tilt_error is None:
+        return "unknown"
+    ex, ey = (float(v) for v in tilt_error)
+    if math.hypot(ex, ey) < SANK_TILT:
+        return "sank"
+    if abs(ey) > abs(ex):
+        return "sideways"
+    return "forward" if ex > 0 else "backward"
 
 
 def keyframe_mean_errors(body_error_world: np.ndarray, keyframe_crossed: np.ndarray) -> np.ndarray:
@@ -168,6 +200,8 @@ def episode_metrics(record: EpisodeRecord, threshold: float = SUCCESS_THRESHOLD_
         joint_acc_count=int(record.joint_acc.size),
         psi_reached=reached,
         keyframe_errors=tuple(float(e) for e in keyframe_mean_errors(record.body_error_world, crossed)),
+        ending=classify_ending(record.ended_by, record.end_tilt_error),
+        ended_by=tuple(record.ended_by or ()),
     )
 
 
@@ -185,6 +219,15 @@ def keyframe_funnel(episodes: list[EpisodeMetrics], num_keyframes: int,
         rows.append({"keyframe": k, "reached": 100.0 * _ratio(len(at_k), n), "on_track": 100.0 * _ratio(on_track, n),
                      "e_g_bpe": 1000.0 * float(np.mean(at_k)) if at_k else float("nan")})
     return rows
+
+
+def endings(episodes: list[EpisodeMetrics], checks=("tilt", "base_height", "keyframe_error")) -> dict:
+    """% of `episodes` per ending (ENDINGS) and % ended by each of the env's `checks` (several can fire on
+    one step, so those may add up to more than the falls)."""
+    n = len(episodes)
+    return {"ending": {name: 100.0 * _ratio(sum(e.ending == name for e in episodes), n) for name in ENDINGS},
+            "check": {name: 100.0 * _ratio(sum(name in e.ended_by for e in episodes), n) for name in checks},
+            "episodes": n}
 
 
 def _ratio(num: float, den: int) -> float:

@@ -155,7 +155,8 @@ def results_table(docs: dict[str, dict]) -> str:
         note += ("\nψ reached (the task variable achieved, from where the robot was at the edited keyframe; "
                  "mean over all episodes / farthest by a successful one; the clip's own ψ_raw "
                  f"{next(iter(docs.values())).get('psi_raw', float('nan')):.2f}):\n" + "\n".join(reach) + "\n")
-    funnels = [funnel_table(variant, doc["keyframe_funnel"]) for variant, doc in docs.items() if doc.get("keyframe_funnel")]
+    funnels = [funnel_table(variant, doc["keyframe_funnel"]) + (f"\n{endings_line(doc['endings'])}\n" if doc.get("endings") else "")
+               for variant, doc in docs.items() if doc.get("keyframe_funnel")]
     return "\n".join(lines) + "\n" + note + "".join(funnels)
 
 
@@ -170,6 +171,24 @@ def funnel_table(variant: str, rows: list[dict]) -> str:
         err = f"{r['e_g_bpe']:.0f}" if np.isfinite(r["e_g_bpe"]) else "–"
         lines.append(f"| {name} | {r['time_s']:.2f} | {r['reached']:.1f} | {r['on_track']:.1f} | {err} |")
     return "\n".join(lines) + "\n"
+
+
+def endings_line(doc: dict) -> str:
+    """`How the 384 episodes ended: 9 % ran to the end; 41 % fell forward, ... Checks that ended them: ...`
+    from metrics.endings."""
+    ending, check = doc["ending"], doc["check"]
+    falls = [f"{ending[name]:.0f} % {label}" for name, label in
+             (("forward", "fell forward"), ("backward", "fell backward"), ("sideways", "fell sideways"),
+              ("sank", "sank (upright against the reference)"), ("unknown", "ended in a way not recorded"))
+             if ending.get(name, 0.0) > 0.0]
+    fired = [f"{label} {check[name]:.0f} %" for name, label in
+             (("tilt", "tilt"), ("base_height", "base height"), ("keyframe_error", "keyframe error"))
+             if check.get(name, 0.0) > 0.0]
+    line = f"How the {doc['episodes']} episodes ended: {ending['completed']:.0f} % ran to the end"
+    line += "; " + ", ".join(falls) + "." if falls else "."
+    if fired:
+        line += " Checks that ended them: " + ", ".join(fired) + "."
+    return line
 
 
 def write_report(task: str, variants: list[str], results_dir: str | Path, out_dir: str | Path) -> Path:

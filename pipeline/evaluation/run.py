@@ -1,8 +1,9 @@
 """The `evaluate` and `report` stages' entry points (called by stages/evaluate.py, stages/report.py).
 
 evaluate_variant writes into `out_dir` (results/<task>/<variant>/):
-  metrics.json            DVC metrics: per range (easy, hard, overall) mean/std over runs, and the
+  metrics.json            DVC metrics: per range (easy, hard, overall) mean/std over runs, the
                           keyframe funnel (every episode pooled: how many reached each keyframe on track)
+                          and the endings (every episode pooled: ran to the end, or fell which way, by which check)
   per_psi.csv, per_psi.json   DVC plots: metrics in ψ bins
   media/per_psi.png       success and errors vs ψ
   media/adapters.png      phase interval and adapter action magnitude over the episode, several ψ
@@ -27,7 +28,7 @@ from pipeline.evaluation.evaluate import (
     spread_in_ranges,
     trace_episode,
 )
-from pipeline.evaluation.metrics import keyframe_funnel, pooled_episodes
+from pipeline.evaluation.metrics import endings, keyframe_funnel, pooled_episodes
 from pipeline.evaluation.report import metrics_document, per_psi_rows, plot_adapters, plot_per_psi, write_metrics, write_per_psi
 
 
@@ -66,6 +67,7 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
                             "psi_raw": float(data.psi_raw),
                             "domain_randomization": eval_cfg.domain_randomization, "policy_stage": meta.get("stage")})
     doc["keyframe_funnel"] = funnel_rows(pooled_episodes(result.runs), data, eval_cfg.success_threshold_m)
+    doc["endings"] = endings(pooled_episodes(result.runs))
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
