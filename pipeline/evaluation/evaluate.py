@@ -135,8 +135,9 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
         adapter_np = _np(adapter) if adapter is not None else np.full(n, np.nan)
         ended = _np(terminated).astype(bool)
         done = ended | _np(truncated).astype(bool)
-        ended_by = _ended_by(info, ended)
-        tilt = _np(info["tilt_error_xy"]) if "tilt_error_xy" in info else None
+        if done.any():  # how the finished episodes ended (read only on the steps some end)
+            fired = {name: _np(mask).astype(bool) for name, mask in (info.get("terminated_by") or {}).items()}
+            tilt = _np(info["tilt_error_xy"]) if "tilt_error_xy" in info else None
         if on_step is not None:
             on_step(env, info, done)  # for done worlds the env already holds the next episode
         for i in np.flatnonzero(finished < episodes_per_env):
@@ -145,7 +146,7 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
             b["acc"].append(acc[i]); b["phase"].append(phase[i]); b["dphi"].append(dphi_np[i])
             b["adapter"].append(adapter_np[i]); b["psi"] = float(psi[i]); b["miss"].append(miss[i])
             if done[i]:
-                b["ended_by"] = ended_by[i]
+                b["ended_by"] = _checks_fired(fired, i, ended[i])
                 b["end_tilt_error"] = tilt[i] if tilt is not None else None
                 records.append((int(finished[i]), int(i), _to_record(b, num_keyframes)))
                 buffers[i] = _empty_buffer()
@@ -162,16 +163,11 @@ def rollout(env, policy: Callable, episodes_per_env: int, num_keyframes: int,
     return [record for _, _, record in sorted(records, key=lambda r: r[:2])]
 
 
-def _ended_by(info: dict, terminated: np.ndarray) -> list[tuple[str, ...] | None]:
-    """Per world, the env checks that fired this step (only read where an episode ended): () for one that
-    was not terminated, None for a terminated one whose env does not say why (no info["terminated_by"], or
-    none of its checks fired)."""
-    fired = {name: _np(mask).astype(bool) for name, mask in (info.get("terminated_by") or {}).items()}
-    out = []
-    for i, term in enumerate(terminated):
-        names = tuple(name for name, mask in fired.items() if mask[i])
-        out.append(names if names or not term else None)
-    return out
+def _checks_fired(fired: dict[str, np.ndarray], world: int, terminated: bool) -> tuple[str, ...] | None:
+    """The env checks that ended `world`'s episode this step: () when it was not terminated (it ran to its
+    end), None when it was but the env does not say why (no info["terminated_by"], or none of its checks fired)."""
+    names = tuple(name for name, mask in fired.items() if mask[world])
+    return names if names or not terminated else None
 
 
 def _empty_buffer() -> dict[str, list]:

@@ -185,7 +185,7 @@ def endings_line(doc: dict) -> str:
              (("tilt", "tilt"), ("base_height", "base height"), ("keyframe_error", "keyframe error"))
              if check.get(name, 0.0) > 0.0]
     line = f"How the {doc['episodes']} episodes ended: {ending['completed']:.0f} % ran to the end"
-    line += "; " + ", ".join(falls) + "." if falls else "."
+    line += ("; " + ", ".join(falls) + ".") if falls else "."
     if fired:
         line += " Checks that ended them: " + ", ".join(fired) + "."
     return line

@@ -66,8 +66,9 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
                            {"episodes_per_range": eval_cfg.episodes_per_range, "runs": eval_cfg.runs,
                             "psi_raw": float(data.psi_raw),
                             "domain_randomization": eval_cfg.domain_randomization, "policy_stage": meta.get("stage")})
-    doc["keyframe_funnel"] = funnel_rows(pooled_episodes(result.runs), data, eval_cfg.success_threshold_m)
-    doc["endings"] = endings(pooled_episodes(result.runs))
+    pooled = pooled_episodes(result.runs)
+    doc["keyframe_funnel"] = funnel_rows(pooled, data, eval_cfg.success_threshold_m)
+    doc["endings"] = endings(pooled)
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
