@@ -420,6 +420,47 @@ def test_reset_state_velocity_noise_only_on_late_starts(data):
         quiet_cfg(rsi_ang_vel_noise=["fast", 0.0, 0.0])
 
 
+def test_reset_pose_noise_turns_and_bends_late_starts_and_keeps_a_foot_on_the_reference_height(data):
+    """rsi_root_rot_noise / rsi_joint_pos_noise perturb the pose of reference-state starts within ±noise
+    (joints inside their limits); the base is then moved in z only, so that the lowest tracked foot is as
+    high as the reference's. Starts from t = 0 keep the reference's state exactly, velocities are untouched."""
+    from pipeline.envs.torch_math import quat_angle_sq, quat_conjugate, quat_mul
+
+    rot, bend = [0.1, 0.2, 0.3], 0.15
+    env = TrackingEnv(quiet_cfg(rsi_prob=0.5, rsi_root_rot_noise=rot, rsi_joint_pos_noise=bend), data, num_envs=64)
+    torch.manual_seed(0)
+    env.reset()
+    frames = env.frame.numpy()
+    late = frames > 0
+    assert 10 < late.sum() < 64
+    m = data.motion
+    qpos = env.backend.qpos.numpy()
+    # turned about the base's own axes: the reference's quaternion times a rotation vector within ±rot
+    delta = quat_mul(quat_conjugate(torch.as_tensor(m.root_quat[frames], dtype=torch.float32)), env.backend.qpos[:, 3:7])
+    turn = 2.0 * delta[:, 1:] * torch.sign(delta[:, :1])  # ≈ the rotation vector for small angles
+    assert np.all(np.abs(turn.numpy()[late]) <= np.array(rot) + 2e-3)
+    assert np.all(np.abs(turn.numpy()[late]).max(0) > 0.6 * np.array(rot))
+    assert np.allclose(quat_angle_sq(env.backend.qpos[~late, 3:7], torch.as_tensor(m.root_quat[frames[~late]], dtype=torch.float32)).numpy(), 0.0, atol=1e-6)
+    joints = qpos[:, 7:] - m.joint_pos[frames]
+    assert np.all(np.abs(joints[late]) <= bend + 1e-5) and np.abs(joints[late]).max() > 0.9 * bend
+    assert np.all(qpos[:, 7:] >= env.joint_pos_low.numpy() - 1e-6) and np.all(qpos[:, 7:] <= env.joint_pos_high.numpy() + 1e-6)
+    assert np.allclose(joints[~late], 0.0, atol=1e-6)
+    # only the height of the base moves; where it ends puts the lowest foot at the reference's height
+    root = m.root_pos[frames] + env.offset_table[env.sample, env.frame].numpy()  # the ψ edit's shift
+    assert np.allclose(qpos[:, :2], root[:, :2], atol=1e-5)
+    assert np.allclose(qpos[~late, 2], root[~late, 2], atol=1e-5)
+    assert np.abs(qpos[late, 2] - root[late, 2]).max() > 0.005
+    env.backend.set_state(np.arange(64), env.backend.qpos, env.backend.qvel, forward=True)
+    feet_z = env.backend.site_pos[:, env.feet_idx, 2].amin(-1).numpy()
+    ref_feet_z = m.body_pos[frames][:, env.feet_idx.numpy(), 2].min(-1) + root[:, 2] - m.root_pos[frames, 2]
+    assert np.allclose(feet_z, ref_feet_z, atol=1e-4)
+    assert np.allclose(env.backend.qvel.numpy(), m.qvel()[frames], atol=1e-4)
+    with pytest.raises(PipelineInputError, match="rsi_root_rot_noise"):
+        quiet_cfg(rsi_root_rot_noise=[0.1, 0.1])
+    with pytest.raises(PipelineInputError, match="rsi_joint_pos_noise"):
+        quiet_cfg(rsi_joint_pos_noise=-0.1)
+
+
 def test_own_state_starts_restart_where_the_policy_was(data):
     """Worlds that cross the marked keyframe alive, in episodes begun before it, are copied into the ring;
     a reset then starts from a copy: the same physics state, ψ sample, phase and observation history."""

@@ -26,6 +26,15 @@ def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     )
 
 
+def quat_from_rotvec(rotvec: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion (..., 4) of the rotation vector (..., 3): its direction the axis, its norm the angle."""
+    angle = rotvec.norm(dim=-1, keepdim=True)
+    half = 0.5 * angle
+    # sin(θ/2)/θ → 1/2 as θ → 0: the small-angle form keeps a zero vector exact
+    scale = torch.where(angle > 1e-8, torch.sin(half) / angle.clamp(min=1e-8), torch.full_like(angle, 0.5))
+    return torch.cat([torch.cos(half), rotvec * scale], dim=-1)
+
+
 def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Rotates v (..., 3) by unit q (..., 4): v + 2w (u×v) + 2 u×(u×v)."""
     w = q[..., :1]

@@ -31,6 +31,7 @@ from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.torch_math import (
     projected_gravity,
     quat_conjugate,
+    quat_from_rotvec,
     quat_mul,
     quat_rotate_inverse,
     yaw_quat,
@@ -184,6 +185,9 @@ class TrackingEnv:
         self.start_sampler = StartFrameSampler(self.cfg.rsi_sampling, self.rsi_frame_table, t)
         noise = list(self.cfg.rsi_lin_vel_noise) + list(self.cfg.rsi_ang_vel_noise)
         self.rsi_vel_noise = self._tensor(noise) if self.cfg.rsi_prob > 0 and any(noise) else None
+        rot_noise, self.rsi_joint_noise = list(self.cfg.rsi_root_rot_noise), float(self.cfg.rsi_joint_pos_noise)
+        self.rsi_rot_noise = self._tensor(rot_noise) if self.cfg.rsi_prob > 0 and any(rot_noise) else None
+        self.rsi_pose_noise = self.cfg.rsi_prob > 0 and (self.rsi_rot_noise is not None or self.rsi_joint_noise > 0)
         # An episode that starts at or after the first edited keyframe never meets the edit: the
         # sampler learns nothing about its ψ from it.
         edited = kf[np.asarray(d.edited, dtype=bool)]
@@ -232,6 +236,7 @@ class TrackingEnv:
         self.default_joint_pos = self._tensor(rc.default_joint_pos)
         self.action_scale = self._tensor(rc.action_scale)
         lim = joint_limits(self.model, rc.joint_names)
+        self.joint_pos_low, self.joint_pos_high = self._tensor(lim[:, 0]), self._tensor(lim[:, 1])
         lo, hi = R.soft_range(lim[:, 0], lim[:, 1], cfg.soft_joint_pos_limit)
         self.soft_pos_low, self.soft_pos_high = self._tensor(lo), self._tensor(hi)
         self.soft_vel_limit = self._tensor(rc.velocity_limit * cfg.soft_joint_vel_limit)
@@ -750,6 +755,29 @@ class TrackingEnv:
         actor = self.obs_history.reshape(self.num_envs, -1)
         return {"actor": actor, "critic": torch.cat([actor, self.privileged], dim=-1)}
 
+    def _perturb_start_pose(self, ids, qpos, qvel, frame, sample) -> torch.Tensor:
+        """The pose of reference-state starts (frame > 0) turned and bent by `env.rsi_root_rot_noise` /
+        `rsi_joint_pos_noise`, then lifted or lowered so that its lowest tracked foot is as high as the
+        reference's: a turned base or bent knee otherwise starts with a foot in the floor or in the air."""
+        late = (frame > 0).nonzero().squeeze(-1)
+        if late.numel() == 0:
+            return qpos
+        n, dev = late.numel(), self.device
+        pose = qpos[late].clone()
+        if self.rsi_rot_noise is not None:
+            turn = self.rsi_rot_noise * (2.0 * torch.rand(n, 3, device=dev) - 1.0)
+            pose[:, 3:7] = quat_mul(pose[:, 3:7], quat_from_rotvec(turn))  # about the base's own axes
+        if self.rsi_joint_noise > 0:
+            bend = self.rsi_joint_noise * (2.0 * torch.rand(n, self.num_joints, device=dev) - 1.0)
+            pose[:, 7:] = torch.minimum(torch.maximum(pose[:, 7:] + bend, self.joint_pos_low), self.joint_pos_high)
+        self.backend.set_state(ids[late], pose, qvel[late], forward=True)  # where the perturbed feet are
+        feet_z = self.backend.site_pos[ids[late]][:, self.feet_idx, 2].amin(-1)
+        ref_feet_z = self.ref_body_pos[frame[late]][:, self.feet_idx, 2].amin(-1) + self.offset_table[sample[late], frame[late], 2]
+        pose[:, 2] += ref_feet_z - feet_z
+        qpos = qpos.clone()
+        qpos[late] = pose
+        return qpos
+
     def _reset_worlds(self, ids: torch.Tensor) -> None:
         n, dev = ids.numel(), self.device
         sample = self.sampler.draw(ids)
@@ -765,6 +793,8 @@ class TrackingEnv:
         if self.rsi_vel_noise is not None:  # None when off: no draw, the same random stream as without it
             started_late = (frame > 0)[:, None].to(qvel.dtype)
             qvel[:, 0:6] += started_late * self.rsi_vel_noise * (2.0 * torch.rand(n, 6, device=dev) - 1.0)
+        if self.rsi_pose_noise:  # off: no draw, as above
+            qpos = self._perturb_start_pose(ids, qpos, qvel, frame, sample)
         own, restart = None, None
         if self.own_states is not None and len(self.own_states) > 0:  # empty: no draw, as with the option off
             own = (torch.rand(n, device=dev) < self.cfg.own_state_starts.prob).nonzero().squeeze(-1)
