@@ -315,8 +315,9 @@ class EnvConfig:
     # to ± these angles (rad; a rotation vector), each joint moved by up to ± rsi_joint_pos_noise (rad, kept
     # inside its limits), then the base lifted or lowered so that the lowest tracked foot is as high as the
     # reference's. Why: a policy trained from exact reference states stands only from states very near
-    # them: the far jump's own landing, 3 cm lower, 0.08 more roll and 0.1 rad off in the legs, falls where
-    # the reference's landing pose with the same velocities stands (benchmarks/RESULTS.md, session 37).
+    # them: after the far jump's landing, its own pose (3 cm lower, 0.08 off in sideways lean, legs 0.02-0.15 rad
+    # off) falls where the reference's pose with its own velocities stands. Off by default: one 640-iteration
+    # run with it did not stand either (benchmarks/RESULTS.md, session 37); it is there for longer runs.
     rsi_root_rot_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     rsi_joint_pos_noise: float = 0.0
     rsi_sampling: StartFrameSamplingConfig = field(default_factory=StartFrameSamplingConfig)
