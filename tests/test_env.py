@@ -420,6 +420,17 @@ def test_reset_state_velocity_noise_only_on_late_starts(data):
         quiet_cfg(rsi_ang_vel_noise=["fast", 0.0, 0.0])
 
 
+def test_quat_from_rotvec_matches_the_numpy_axis_angle_and_keeps_zero_exact():
+    from pipeline.common import quat
+    from pipeline.envs.torch_math import quat_from_rotvec
+
+    rotvec = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [0.0, 2.5, 0.0], [1e-9, 0.0, 0.0]])
+    q = quat_from_rotvec(torch.as_tensor(rotvec)).numpy()
+    assert np.array_equal(q[0], [1.0, 0.0, 0.0, 0.0])
+    assert np.allclose(q, quat.from_axis_angle(rotvec), atol=1e-12)
+    assert np.allclose(np.linalg.norm(q, axis=-1), 1.0)
+
+
 def test_reset_pose_noise_turns_and_bends_late_starts_and_keeps_a_foot_on_the_reference_height(data):
     """rsi_root_rot_noise / rsi_joint_pos_noise perturb the pose of reference-state starts within ±noise
     (joints inside their limits); the base is then moved in z only, so that the lowest tracked foot is as
