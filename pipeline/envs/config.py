@@ -368,9 +368,8 @@ class EnvConfig:
             value = getattr(self, key)
             if len(value) != 3 or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0 for v in value):
                 bad(key, f"must be three numbers >= 0 (x, y, z), got {value!r}")
-        if isinstance(self.rsi_joint_pos_noise, bool) or not isinstance(self.rsi_joint_pos_noise, (int, float)) \
-                or not self.rsi_joint_pos_noise >= 0:
-            bad("rsi_joint_pos_noise", f"must be a number >= 0 (rad), got {self.rsi_joint_pos_noise!r}")
+        if not self.rsi_joint_pos_noise >= 0:  # a number already: from_dict's typed conversion checks that
+            bad("rsi_joint_pos_noise", f"must be >= 0 (rad), got {self.rsi_joint_pos_noise!r}")
         rs = self.rsi_sampling
         if rs.mode not in ("uniform", "adaptive"):
             bad("rsi_sampling.mode", f"{rs.mode!r}: expected 'uniform' or 'adaptive'")

@@ -769,7 +769,7 @@ class TrackingEnv:
             pose[:, 3:7] = quat_mul(pose[:, 3:7], quat_from_rotvec(turn))  # about the base's own axes
         if self.rsi_joint_noise > 0:
             bend = self.rsi_joint_noise * (2.0 * torch.rand(n, self.num_joints, device=dev) - 1.0)
-            pose[:, 7:] = torch.minimum(torch.maximum(pose[:, 7:] + bend, self.joint_pos_low), self.joint_pos_high)
+            pose[:, 7:] = torch.clamp(pose[:, 7:] + bend, self.joint_pos_low, self.joint_pos_high)
         self.backend.set_state(ids[late], pose, qvel[late], forward=True)  # where the perturbed feet are
         feet_z = self.backend.site_pos[ids[late]][:, self.feet_idx, 2].amin(-1)
         ref_feet_z = self.ref_body_pos[frame[late]][:, self.feet_idx, 2].amin(-1) + self.offset_table[sample[late], frame[late], 2]
