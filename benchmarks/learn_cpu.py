@@ -18,7 +18,9 @@ curricula following the count: figures that compare across machines.
 
 With `--stage2-minutes M`, stage 2 (variant adamimic: phase and tracking adapters on the frozen stage-1
 policy, episodes from t = 0) then trains for M more minutes and is evaluated on the same episodes; the
-last line stays stage 1's, which is what the goal is about.
+last line stays stage 1's, which is what the goal is about. `--stage1-from DIR` takes the stage-1 policy an
+earlier run saved under its `--out` instead of training one (its line reads `minutes=0.0`), to train stage 2 on it;
+give the same segment, ψ range, prior and `--set` overrides as that run.
 
 With `--snapshots K`, stage 1 saves a checkpoint every `--snapshot-every N` iterations (default 10) and keeps
 the last K; each is then evaluated on the same episodes, and so is the mean of their weights (observation
@@ -26,7 +28,7 @@ normalisers included) over the last 3, 5, ... K of them: how much a run's result
 and whether averaging its tail steadies it (benchmarks/RESULTS.md, session 30).
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
-        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M] [--snapshots K [--snapshot-every N]]
+        [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M [--stage1-from DIR]] [--snapshots K [--snapshot-every N]]
         [--push-prior [--push-prior-knots K] [--push-prior-iterations N] [--push-prior-land-by-slack S] [--push-prior-reference-posture]
          | --no-push-prior | --push-prior-from DIR]
         [--set env.KEY=VALUE | train.KEY=VALUE ...]
@@ -236,6 +238,9 @@ def main() -> None:
                              "landing then lands instead of falling into the far jump's gap)")
     parser.add_argument("--stage2-minutes", type=float, default=0.0,
                         help="then train stage 2 on the stage-1 policy for this long and evaluate it too")
+    parser.add_argument("--stage1-from", type=Path, default=None, metavar="DIR",
+                        help="skip stage 1: evaluate the policy an earlier run saved under DIR (its --out) and train "
+                             "stage 2 on it")
     parser.add_argument("--snapshots", type=int, default=0, metavar="K",
                         help="keep stage 1's last K checkpoints and evaluate each, and their weight averages, too")
     parser.add_argument("--snapshot-every", type=int, default=10, metavar="N",
@@ -264,6 +269,11 @@ def main() -> None:
         parser.error("--iterations: must be >= 0 (0: train for --minutes)")
     if args.snapshots < 0 or args.snapshot_every < 1:
         parser.error("--snapshots: must be >= 0, and --snapshot-every >= 1")
+    if args.stage1_from is not None:
+        if args.snapshots:
+            parser.error("--stage1-from: no stage-1 training, so no --snapshots")
+        if not (args.stage1_from / "policy" / "config.json").exists():
+            parser.error(f"--stage1-from {args.stage1_from}: no policy/config.json there (give an earlier run's --out)")
     if args.push_prior and args.push_prior_from:
         parser.error("--push-prior-from: a saved prior instead of a search, not with --push-prior")
     if args.push_prior is None:
@@ -279,8 +289,6 @@ def main() -> None:
 
     from pipeline.envs.config import EnvConfig
     from pipeline.rl.config import TrainConfig
-    from pipeline.rl.trainer import train_stage1
-
     t0 = time.time()
     data, keyframes, (start, stop, total) = build_data(args.segment, psi_range=args.psi, keyframe_spacing=args.keyframe_spacing,
                                                        motion_name=args.motion, flat_ground=args.flat_ground)
@@ -332,12 +340,37 @@ def main() -> None:
     cfg = TrainConfig.from_dict(overrides["train"])
     env_cfg = EnvConfig.from_dict(overrides["env"])
     torch.set_num_threads(2)
+    if args.stage1_from is not None:
+        stage1_policy = args.stage1_from / "policy"
+        ev, episodes = evaluate_from_start(stage1_policy, data, env_cfg)
+        report(f"stage 1 from {stage1_policy}, evaluation from t = 0 (deterministic, no randomisation, "
+               f"{ev['episodes']} episodes)", ev, episodes, data)
+        minutes = 0.0
+    else:
+        stage1_policy = out / "policy"
+        ev, minutes = train_and_report_stage1(args, data, env_cfg, cfg, out)
+    if args.stage2_minutes > 0:
+        from pipeline.rl.trainer import train_stage2
+
+        stage2_cfg = TrainConfig.from_dict({**overrides["train"], "variant": "adamimic", "iterations_stage2": 0,
+                                            "time_limit_stage2_s": args.stage2_minutes * 60.0})
+        t2 = time.time()
+        train_stage2(data, env_cfg, stage2_cfg, out / "stage2", stage1_dir=stage1_policy, tensorboard=False,
+                     progress=False, log=print)
+        ev2, episodes2 = evaluate_from_start(out / "stage2" / "policy", data, env_cfg)
+        report(f"stage 2 after {(time.time() - t2) / 60:.1f} more minutes, same episodes", ev2, episodes2, data)
+    print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
+
+
+def train_and_report_stage1(args, data, env_cfg, cfg, out: Path):
+    """Stage 1 with its training curve printed, then its evaluation from t = 0. Returns (evaluation, minutes)."""
+    import json
+
+    from pipeline.rl.trainer import train_stage1
+
     t1 = time.time()
     metrics = train_stage1(data, env_cfg, cfg, out, tensorboard=False, progress=False, log=print)
     minutes = (time.time() - t1) / 60.0
-
-    import json
-
     history = json.loads((out / "history.json").read_text())
     cols = [("iteration", "{:9d}", "iteration"), ("minutes", "{:7.2f}", None), ("env_steps", "{:9d}", "env_steps"),
             ("success", "{:7.3f}", "success_rate"), ("ep_len", "{:6.1f}", "episode_length"),
@@ -374,17 +407,7 @@ def main() -> None:
            ev, episodes, data)
     if args.snapshots:
         evaluate_snapshots(out, args.snapshots, data, env_cfg)
-    if args.stage2_minutes > 0:
-        from pipeline.rl.trainer import train_stage2
-
-        stage2_cfg = TrainConfig.from_dict({**overrides["train"], "variant": "adamimic", "iterations_stage2": 0,
-                                            "time_limit_stage2_s": args.stage2_minutes * 60.0})
-        t2 = time.time()
-        train_stage2(data, env_cfg, stage2_cfg, out / "stage2", stage1_dir=out / "policy", tensorboard=False,
-                     progress=False, log=print)
-        ev2, episodes2 = evaluate_from_start(out / "stage2" / "policy", data, env_cfg)
-        report(f"stage 2 after {(time.time() - t2) / 60:.1f} more minutes, same episodes", ev2, episodes2, data)
-    print(f"success={ev['success'] / 100:.3f} minutes={minutes:.1f}")
+    return ev, minutes
 
 
 if __name__ == "__main__":

@@ -626,13 +626,13 @@ def test_bad_input(data, monkeypatch):
     with pytest.raises(PipelineInputError, match="joint_names"):
         TrackingEnv(EnvConfig(), wrong, num_envs=2)
 
-    import pipeline.keyframes as kf
+    import pipeline.keyframes.terrain as terrain
 
     def broken_builder(task):
         raise ValueError("gap wider than the world")
 
-    monkeypatch.setattr(kf, "terrain_builder", broken_builder, raising=False)
-    monkeypatch.setattr(kf, "terrain_layout", lambda task, psi: {}, raising=False)
+    monkeypatch.setattr(terrain, "terrain_builder", broken_builder)
+    monkeypatch.setattr(terrain, "terrain_layout", lambda task, psi: {})
     gap = TrackingData(**{**data.__dict__, "terrain": {"kind": "gap"}})
     with pytest.raises(PipelineInputError, match="terrain"):
         TrackingEnv(EnvConfig(), gap, num_envs=2)

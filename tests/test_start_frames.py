@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs.config import EnvConfig, StartFrameSamplingConfig
-from pipeline.envs.start_frames import StartFrameSampler
+from pipeline.envs.start_frames import StartFrameSampler, allowed_start_frames
 
 FRAMES = torch.arange(4, 84)  # 80 start frames, frames 0-3 not in the table
 
@@ -57,3 +58,14 @@ def test_a_snapshot_of_another_group_count_is_refused():
 def test_bad_settings_are_refused_by_name(key, value):
     with pytest.raises(PipelineInputError, match=f"rsi_sampling.{key}"):
         EnvConfig.from_dict({"rsi_sampling": {key: value}})
+
+
+def test_stance_starts_skip_the_flight_and_the_last_frame():
+    keyframes = np.array([0, 10, 20, 30, 39])
+    labels = ["", "takeoff", "landing", "", ""]
+    stance = allowed_start_frames("stance", keyframes, labels, num_frames=40)
+    assert stance.tolist() == list(range(0, 11)) + list(range(20, 39))  # the takeoff and landing frames stay
+    assert allowed_start_frames("keyframes", keyframes, labels, 40).tolist() == [0, 10, 20, 30]
+    # a takeoff with no landing after it: the rest of the clip is in the air
+    assert allowed_start_frames("stance", keyframes, ["", "", "", "takeoff_2", ""], 40).tolist() == list(range(0, 31))
+    assert allowed_start_frames("stance", keyframes, None, 40).tolist() == list(range(39))

@@ -88,6 +88,14 @@ class PenaltyCurriculum:
     fall_rate_low: float = 0.3
     rate: float = 0.05
 
+    def next_scale(self, scale: float, fall_rate: float) -> float:
+        """The scale after one update, given the share of the finished episodes that were terminated."""
+        if fall_rate > self.fall_rate_high:
+            scale *= 1.0 - self.rate
+        elif fall_rate < self.fall_rate_low:
+            scale *= 1.0 + self.rate
+        return min(max(scale, self.initial), 1.0)
+
 
 @dataclass
 class RewardConfig:
@@ -135,6 +143,15 @@ class CurriculumConfig:
     # ends most far-jump training episodes on the head's error after the landing, but those episodes
     # fall anyway when it is loosened, and "mean" scored no better (benchmarks/RESULTS.md, session 11).
     measure: str = "max"
+
+    def threshold_at(self, progress: float) -> float:
+        """The threshold (m) at training progress `progress` (clamped to [0, 1])."""
+        p = min(max(float(progress), 0.0), 1.0)
+        if p <= self.tighten_until:
+            return self.start + (self.min - self.start) * (p / self.tighten_until if self.tighten_until > 0 else 1.0)
+        if p < self.relax_from:
+            return self.min
+        return self.min + (self.max - self.min) * ((p - self.relax_from) / max(1.0 - self.relax_from, 1e-6))
 
 
 @dataclass

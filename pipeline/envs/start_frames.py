@@ -15,10 +15,28 @@ the env's `state_dict`.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs.config import StartFrameSamplingConfig
+
+
+def allowed_start_frames(mode: str, keyframes: np.ndarray, labels, num_frames: int) -> np.ndarray:
+    """Frames a reference-state start may use (`EnvConfig.rsi_frames`): "keyframes" only, or "stance":
+    every frame but those in the air (after a keyframe labelled takeoff, before the next labelled landing).
+    Never the last frame, which would time out at once."""
+    if mode == "keyframes":
+        return keyframes[keyframes < num_frames - 1]
+    allowed = np.ones(num_frames - 1, dtype=bool)
+    labels = [str(label) for label in labels] if labels is not None else [""] * keyframes.size
+    for i, label in enumerate(labels):
+        if not label.startswith("takeoff"):
+            continue
+        landing = next((keyframes[j] for j in range(i + 1, keyframes.size) if labels[j].startswith("landing")),
+                       num_frames)
+        allowed[keyframes[i] + 1 : landing] = False  # the takeoff and the landing frames stay
+    return np.flatnonzero(allowed)
 
 
 class StartFrameSampler:

@@ -25,9 +25,10 @@ from pipeline.envs.config import EnvConfig
 from pipeline.envs.feedforward import zero_action_targets
 from pipeline.envs.own_states import FIELDS as OWN_STATE_FIELDS
 from pipeline.envs.own_states import OwnStateRing
-from pipeline.envs.start_frames import StartFrameSampler
 from pipeline.envs.randomization import DomainRandomizer
 from pipeline.envs.sampling import SampleSampler
+from pipeline.envs.scene import build_scene, make_physics, terrain_fields_per_sample
+from pipeline.envs.start_frames import StartFrameSampler, allowed_start_frames
 from pipeline.envs.torch_math import (
     projected_gravity,
     quat_conjugate,
@@ -61,14 +62,8 @@ class TrackingEnv:
         self.num_envs = n = int(num_envs)
         self._check_data(data, source)
 
-        builder, self._layout = _terrain_hooks(data, task, source)
-        try:
-            from pipeline.sim.model import build_sim_model
-
-            model = build_sim_model(terrain=builder)
-        except Exception as exc:  # a terrain that does not compile is the task's fault
-            raise PipelineInputError(source, "terrain", f"cannot build the scene: {exc}") from exc
-        self.backend = _make_backend(backend, model, n, cfg.physics_threads, device, source)
+        model, terrain_layout = build_scene(data, task, source)
+        self.backend = make_physics(backend, model, n, cfg.physics_threads, device, source)
         self.model = self.backend.model  # the compiled scene with the backend's sensors
         self.decimation = int(self.backend.decimation)
         self.control_dt = self.robot.control_dt
@@ -81,7 +76,7 @@ class TrackingEnv:
         self._precompute_robot()
         self.randomizer = DomainRandomizer(cfg.randomization, self.model, self.backend)
         self.sampler = SampleSampler(cfg.sampling, data.psi, data.psi_raw, n, self.device)
-        self._terrain_fields = self._precompute_terrain()
+        self._terrain_fields = terrain_fields_per_sample(self.model, terrain_layout, data.psi, source)
 
         self.actor_obs_dim = FRAME_OBS_DIM * cfg.observations.history
         self.critic_obs_dim = self.actor_obs_dim + 3 + self.num_joints + 1 + 1
@@ -181,7 +176,8 @@ class TrackingEnv:
         self.kf_scale = self._tensor(d.sparse_scale)
         self.kf_target_pos = self._tensor(m.body_pos[kf][None] + np.asarray(d.keyframe_offsets)[:, :, None])  # (S,K,B,3)
         self.kf_target_quat = self._tensor(m.body_quat[kf])  # (K,B,4): edits only translate
-        self.rsi_frame_table = torch.as_tensor(self._rsi_frames(kf, d.keyframe_labels, t), device=self.device)
+        self.rsi_frame_table = torch.as_tensor(allowed_start_frames(self.cfg.rsi_frames, kf, d.keyframe_labels, t),
+                                               device=self.device)
         self.start_sampler = StartFrameSampler(self.cfg.rsi_sampling, self.rsi_frame_table, t)
         noise = list(self.cfg.rsi_lin_vel_noise) + list(self.cfg.rsi_ang_vel_noise)
         self.rsi_vel_noise = self._tensor(noise) if self.cfg.rsi_prob > 0 and any(noise) else None
@@ -202,20 +198,6 @@ class TrackingEnv:
                                          f"no keyframe label starts with {own.at_label!r} (labels: {labels})")
             self.own_state_keyframes = torch.as_tensor(marked, device=self.device)
             self.own_states = OwnStateRing(own.capacity, self.device)
-
-    def _rsi_frames(self, kf: np.ndarray, labels, num_frames: int) -> np.ndarray:
-        """Frames a reference-state start may use (`EnvConfig.rsi_frames`); never the last frame,
-        which would time out at once."""
-        if self.cfg.rsi_frames == "keyframes":
-            return kf[kf < num_frames - 1]
-        allowed = np.ones(num_frames - 1, dtype=bool)
-        labels = list(labels) if labels is not None else [""] * kf.size
-        for i, label in enumerate(labels):
-            if not str(label).startswith("takeoff"):
-                continue
-            landing = next((kf[j] for j in range(i + 1, kf.size) if str(labels[j]).startswith("landing")), num_frames)
-            allowed[kf[i] + 1 : landing] = False  # in the air: from the takeoff (kept) to the landing (kept)
-        return np.flatnonzero(allowed)
 
     def _precompute_robot(self) -> None:
         cfg, rc = self.cfg.rewards, self.robot
@@ -244,27 +226,6 @@ class TrackingEnv:
         term = self.cfg.terminations
         self.height_termination = term.base_height_enabled and self.data.task not in term.base_height_exempt_tasks
         self.odom_every = max(1, int(round(1.0 / (self.cfg.observations.odometry_rate_hz * self.control_dt))))
-
-    def _precompute_terrain(self):
-        """Per ψ-sample positions/sizes of the terrain geoms, as full per-world geom fields."""
-        if self._layout is None:
-            return None
-        layouts = [self._layout(float(p)) for p in self.data.psi]
-        if not layouts or not layouts[0]:
-            return None
-        names = sorted(layouts[0])
-        try:
-            ids = [self.model.geom(nm).id for nm in names]
-        except KeyError as exc:
-            raise PipelineInputError(f"task {self.data.task}", "terrain", f"layout names an unknown geom: {exc}") from exc
-        pos = np.repeat(self.model.geom_pos[None], len(layouts), 0).copy()
-        size = np.repeat(self.model.geom_size[None], len(layouts), 0).copy()
-        for s, lay in enumerate(layouts):
-            for gid, nm in zip(ids, names):
-                pos[s, gid], size[s, gid] = lay[nm]
-        # Sizes are constant over ψ for the paper's tasks: then only positions are written at reset
-        # (resizing also makes the backend recompute collision bounds).
-        return pos, (size if np.ptp(size, axis=0).max() > 0 else None)
 
     def _alloc_state(self) -> None:
         n, j, dev = self.num_envs, self.num_joints, self.device
@@ -389,27 +350,15 @@ class TrackingEnv:
         """Called once per training iteration. Sets the keyframe-error termination threshold
         (returned) from training progress p ∈ [0, 1], and the dense penalty scale (`penalty_scale`)
         from the share of episodes that fell since the last call (see `PenaltyCurriculum`)."""
-        c = self.cfg.terminations.keyframe_error
-        p = min(max(float(progress), 0.0), 1.0)
-        if p <= c.tighten_until:
-            value = c.start + (c.min - c.start) * (p / c.tighten_until if c.tighten_until > 0 else 1.0)
-        elif p < c.relax_from:
-            value = c.min
-        else:
-            value = c.min + (c.max - c.min) * ((p - c.relax_from) / max(1.0 - c.relax_from, _EPS))
         pc = self.cfg.rewards.penalty_curriculum
         if pc.enabled:
             if not self.penalty_curriculum_started:
                 self.penalty_scale, self.penalty_curriculum_started = pc.initial, True
             elif int(self.episodes_finished) > 0:
                 fall_rate = int(self.episodes_terminated) / int(self.episodes_finished)
-                if fall_rate > pc.fall_rate_high:
-                    self.penalty_scale *= 1.0 - pc.rate
-                elif fall_rate < pc.fall_rate_low:
-                    self.penalty_scale *= 1.0 + pc.rate
-                self.penalty_scale = min(max(self.penalty_scale, pc.initial), 1.0)
+                self.penalty_scale = pc.next_scale(self.penalty_scale, fall_rate)
         self._clear_episode_counts()
-        return self.set_termination_threshold(value)
+        return self.set_termination_threshold(self.cfg.terminations.keyframe_error.threshold_at(progress))
 
     def _clear_episode_counts(self) -> None:
         self.episodes_finished = torch.zeros((), dtype=torch.long, device=self.device)
@@ -845,60 +794,6 @@ class TrackingEnv:
             for name in OWN_STATE_FIELDS:
                 if name not in ("qpos", "qvel", "sample", "frame"):
                     getattr(self, name)[worlds] = restart[name]
-
-
-def _make_backend(backend, model, num_envs, nthread, device, source):
-    if not isinstance(backend, str):
-        return backend  # an already built PhysicsBackend (tests, custom engines)
-    if backend not in ("cpu", "warp"):
-        raise PipelineInputError(source, "backend", f"unknown backend {backend!r} (known: cpu, warp)")
-    from pipeline.sim.backend import make_backend
-
-    try:
-        return make_backend(backend, model, num_envs, nthread=nthread, device=str(device))
-    except PipelineInputError:
-        raise
-    except (ValueError, RuntimeError, ImportError) as exc:
-        raise PipelineInputError(source, "backend", f"cannot start {backend!r}: {exc}") from exc
-
-
-def _terrain_hooks(data: TrackingData, task, source):
-    """(builder, layout(psi)) from pipeline.keyframes when it provides them; flat ground otherwise."""
-    if not data.terrain or data.terrain.get("kind", "flat") == "flat":
-        return None, None  # flat ground: nothing to build or move
-    try:
-        from pipeline import keyframes as kf_module
-
-        builder_fn = getattr(kf_module, "terrain_builder", None)
-        layout_fn = getattr(kf_module, "terrain_layout", None)
-        if builder_fn is None:
-            from pipeline.keyframes import terrain as kf_module  # type: ignore[no-redef]
-
-            builder_fn = getattr(kf_module, "terrain_builder", None)
-            layout_fn = getattr(kf_module, "terrain_layout", None)
-    except ImportError:
-        builder_fn = layout_fn = None
-    if builder_fn is None:
-        raise PipelineInputError(source, "terrain",
-                                 f"terrain {data.terrain.get('kind')!r} declared but pipeline.keyframes has no terrain_builder")
-    # The hooks take the task (TaskConfig) or, without one, the TrackingData and its resolved terrain.
-    task = task if task is not None else data
-    try:
-        builder = builder_fn(task)
-    except PipelineInputError:
-        raise
-    except Exception as exc:
-        raise PipelineInputError(source, "terrain", f"cannot build the terrain: {exc}") from exc
-    layout = None
-    if layout_fn is not None:
-        def layout(psi: float):
-            try:
-                return layout_fn(task, psi)
-            except PipelineInputError:
-                raise
-            except Exception as exc:
-                raise PipelineInputError(source, "terrain", f"cannot lay out ψ={psi}: {exc}") from exc
-    return builder, layout
 
 
 __all__ = ["TrackingEnv", "FRAME_OBS_DIM"]
