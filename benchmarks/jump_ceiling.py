@@ -35,7 +35,7 @@ run on a task's D_edit.
     .venv/bin/python benchmarks/jump_ceiling.py [--motion far_jump] [--iterations 40] [--population 256] [--seed 0] [--knots 12]
 
 `--knots`: how many knots each offset curve has over the 1.4 s (12, a knot every 0.13 s, is what the recorded
-figures used; 20 reach further within the fall checks, RESULTS.md session 24).
+figures used; 20 reach further within the fall checks, RESULTS.md commit 2184b6a).
 
 Ends with `ceiling_psi_m=<any timing> ceiling_psi_clip_timing_m=<by the reference's landing>
 ceiling_psi_fall_checks_m=<also within the env's fall checks> psi_raw_m=<the clip's> zero_action_psi_m=<...>`:

@@ -25,7 +25,7 @@ give the same segment, ψ range, prior and `--set` overrides as that run.
 With `--snapshots K`, stage 1 saves a checkpoint every `--snapshot-every N` iterations (default 10) and keeps
 the last K; each is then evaluated on the same episodes, and so is the mean of their weights (observation
 normalisers included) over the last 3, 5, ... K of them: how much a run's result depends on where it stops,
-and whether averaging its tail steadies it (benchmarks/RESULTS.md, session 30).
+and whether averaging its tail steadies it (benchmarks/RESULTS.md, commit 136f1b8).
 
     .venv/bin/python benchmarks/learn_cpu.py [--motion far_jump] [--minutes 20 | --iterations N] [--segment 1.5] [--envs 192] [--out DIR]
         [--psi LOW HIGH] [--keyframe-spacing S] [--flat-ground] [--stage2-minutes M [--stage1-from DIR]] [--snapshots K [--snapshot-every N]]
@@ -36,7 +36,7 @@ and whether averaging its tail steadies it (benchmarks/RESULTS.md, session 30).
 On the far jump (any task whose edit lengthens the jump along +x) it first searches the task's push prior on
 the segment (priors/push_prior.py: an open-loop push, scaled per ψ, added to the zero action; about a minute
 on 2 cores, reported apart from the training's time, as the keyframe stage's are) and trains and evaluates
-with it; `--no-push-prior` trains without (the default until session 27), `--push-prior-from DIR` reuses the
+with it; `--no-push-prior` trains without (the default until commit b822369), `--push-prior-from DIR` reuses the
 prior an earlier run saved.
 """
 
@@ -311,7 +311,7 @@ def main() -> None:
                 raise SystemExit(f"--push-prior-from {args.push_prior_from}: its push_prior.json has no prior")
         else:
             t_prior = time.time()
-            # 20 knots: every run over the goal trained on such a prior (benchmarks/RESULTS.md, sessions 26-27).
+            # 20 knots: every run over the goal trained on such a prior (benchmarks/RESULTS.md, commits ff6fc64-b822369).
             search = {"knots": 20 if args.push_prior_knots is None else args.push_prior_knots}
             if args.push_prior_iterations is not None:
                 search["iterations"] = args.push_prior_iterations

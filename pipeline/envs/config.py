@@ -33,7 +33,7 @@ class RewardWeights:
     # are all relative to the root, so the pelvis's own pitch is otherwise paid for only at keyframes.
     # Off: at 1.0 / 0.5 the far jump's robot (learn_cpu --segment 2.3) braked after its landing as the reference
     # does, then sat back and fell backward (0.016 against 0.094), and on the bundled sample half the episodes
-    # fell before the landing (benchmarks/RESULTS.md, session 34).
+    # fell before the landing (benchmarks/RESULTS.md, commit 9018155).
     root_tilt: float = 0.0
     root_ang_vel: float = 0.0
     feet_orientation: float = -0.05
@@ -54,7 +54,7 @@ class KernelSigmas:
 
     upper_body_pos: float = 0.03
     # 0.1 m² pays 0.98 of the term for feet 11 cm off; 0.01 taught learn_cpu's 2.3 s far jump to stand from the
-    # reference's touch-down, not from t = 0 (benchmarks/RESULTS.md, session 34)
+    # reference's touch-down, not from t = 0 (benchmarks/RESULTS.md, commit 9018155)
     lower_body_pos: float = 0.1
     body_rot: float = 1.0
     joint_pos: float = 1.0
@@ -62,7 +62,7 @@ class KernelSigmas:
     # of the feet term instead of 0.0002, so the sparse return tells a near miss from a far one and pulls the
     # jump towards the edited landing. On learn_cpu (seeds 0, 2, 3) 0.906 / 0.938 / 0.922 against 0.938 /
     # 0.891 / 0.859, the 1.7–2.0 m gaps 0.70 / 0.60 / 0.60 against 0.60 / 0.30 / 0.20
-    # (benchmarks/RESULTS.md, session 29).
+    # (benchmarks/RESULTS.md, commit 8523f33).
     feet_pos: float = 0.3
     root_tilt: float = 0.1  # |Δ gravity_xy|², unitless: 0.3 off (a 17° lean) pays exp(−0.9) = 0.41
     root_ang_vel: float = 4.0  # |Δω|² in (rad/s)²: 2 rad/s off pays exp(−1) = 0.37
@@ -123,7 +123,7 @@ class ObservationConfig:
     # ψ's running std ends near 0.08 m and the far jump's 0.2 m and 2.0 m gaps reach the networks at
     # about ±7 normalised units, where training never went. On learn_cpu (same prior, seeds 0–2)
     # "samples" read 0.938 / 0.938 / 0.891 against 0.797 / 0.875 / 0.938, every 0.2–0.5 m gap cleared
-    # at each seed (benchmarks/RESULTS.md, session 27).
+    # at each seed (benchmarks/RESULTS.md, commit b822369).
     psi_scale: str = "samples"
 
 
@@ -141,7 +141,7 @@ class CurriculumConfig:
     # What is compared with the threshold at a keyframe: "max" — the worst tracked body's position
     # error; "mean" — the bodies' mean, the quantity that E_g-bpe and the success test measure. "max"
     # ends most far-jump training episodes on the head's error after the landing, but those episodes
-    # fall anyway when it is loosened, and "mean" scored no better (benchmarks/RESULTS.md, session 11).
+    # fall anyway when it is loosened, and "mean" scored no better (benchmarks/RESULTS.md, commit 645cc71).
     measure: str = "max"
 
     def threshold_at(self, progress: float) -> float:
@@ -236,7 +236,7 @@ class SamplingConfig:
     # of a far-jump run every level succeeds 40–50 % while the far gaps read 0–10 % in evaluation
     # and the short ones 75–100 %, so the walk says nothing about the far side. Opt-in: split, the far
     # side's rates fall 0.53 -> 0 with ψ as they should, but learn_cpu read the same (0.781 / 0.656
-    # against 0.859 / 0.594 pooled, both with relax_from 0.6; benchmarks/RESULTS.md, session 25).
+    # against 0.859 / 0.594 pooled, both with relax_from 0.6; benchmarks/RESULTS.md, commit 30dbea0).
     split_sides: bool = False
     # curriculum: which falls send a world one level down. "every_fall": any failed episode (legged_gym's
     # rule). "relative": only where the world's level succeeds at most `relative_ratio` times as often as
@@ -244,7 +244,7 @@ class SamplingConfig:
     # the randomisation and the exploration noise, not from the edit. `relative`, `judge: success_test`
     # and `uniform_share` are opt-in: on learn_cpu they read within the default's seed spread, because
     # the far jump's training episodes succeed 1–15 % at every level until the keyframe-error threshold
-    # relaxes, and no rule climbs on that (benchmarks/RESULTS.md, session 25).
+    # relaxes, and no rule climbs on that (benchmarks/RESULTS.md, commit 30dbea0).
     demotion: str = "every_fall"
     relative_ratio: float = 0.8
     level_rate: float = 0.02  # EMA step of each level's success rate per recorded episode
@@ -266,12 +266,12 @@ class OwnStateStartConfig:
 
     Reference-state starts put the robot exactly on the clip. A policy that lands a jump 0.3 m ahead of
     the reference, pitched forward and still moving has met its own landing only once per episode from
-    t = 0, and the episodes are lost in the second after it (benchmarks/RESULTS.md, sessions 31–32).
+    t = 0, and the episodes are lost in the second after it (benchmarks/RESULTS.md, commits f8efea5–ab5803e).
     With `prob` > 0 the env keeps a ring of the last `capacity` states of episodes that started before
     the keyframes labelled `at_label` (their own flight, not a reference start) as they crossed one
     alive, and a reset starts there with probability `prob`: the same physics state, ψ sample, phase
     and observation history. Off by default: on learn_cpu's 2.3 s far-jump segment, 0.3 read 0.000 against
-    0.094 without it (benchmarks/RESULTS.md, session 33). Evaluation and stage 2 always start at t = 0.
+    0.094 without it (benchmarks/RESULTS.md, commit c101d09). Evaluation and stage 2 always start at t = 0.
     """
 
     prob: float = 0.0
@@ -286,7 +286,7 @@ class StartFrameSamplingConfig:
     fail, with `uniform_share` of the draws kept uniform. `rate_smoothing`: the weight of each step's
     ended episodes in a group's running failure rate. Off by default: on learn_cpu's 2.3 s far-jump segment it
     taught the stand from the reference's own touch-down (18 of 18 episodes started there, 0 of 18 without it)
-    but not from t = 0, where the robot's own touch-down is not the reference's (benchmarks/RESULTS.md, session 34)."""
+    but not from t = 0, where the robot's own touch-down is not the reference's (benchmarks/RESULTS.md, commit 9018155)."""
 
     mode: str = "uniform"
     bins: int = 16
@@ -334,7 +334,7 @@ class EnvConfig:
     # reference's. Why: a policy trained from exact reference states stands only from states very near
     # them: after the far jump's landing, its own pose (3 cm lower, 0.08 off in sideways lean, legs 0.02-0.15 rad
     # off) falls where the reference's pose with its own velocities stands. Off by default: one 640-iteration
-    # run with it did not stand either (benchmarks/RESULTS.md, session 37); it is there for longer runs.
+    # run with it did not stand either (benchmarks/RESULTS.md, commit 1a1474d); it is there for longer runs.
     rsi_root_rot_noise: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     rsi_joint_pos_noise: float = 0.0
     rsi_sampling: StartFrameSamplingConfig = field(default_factory=StartFrameSamplingConfig)

@@ -7,7 +7,7 @@
   spread as uniform draws would be, so groups that are already solved are still rehearsed. Failures
   are charged to where an episode *started*, not where it fell: on the far jump the policy falls 0.9 s
   after a start at the touch-down (frames 84–107) and stands from every start 0.18 s later
-  (benchmarks/RESULTS.md, session 34), so the frames to practise are the ones it starts from.
+  (benchmarks/RESULTS.md, commit 9018155), so the frames to practise are the ones it starts from.
 
 Draws use torch's global generator (the trainer saves and restores it); the failure rates are part of
 the env's `state_dict`.

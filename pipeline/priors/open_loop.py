@@ -84,7 +84,7 @@ class LandingPosture:
     is no longer, and land sitting back: learn_cpu's far-jump prior (2.3 s segment) landed its ψ ≥ 0.88 m
     jumps upright or leaning back (lean −0.28 to +0.09) with the feet 0.21–0.49 m ahead of the pelvis, most
     of them pitching backward at 1–2 rad/s, where the reference lands leaning forward (+0.30) with its feet
-    0.22 m ahead, pitching back at 0.59 rad/s (benchmarks/RESULTS.md, session 35)."""
+    0.22 m ahead, pitching back at 0.59 rad/s (benchmarks/RESULTS.md, commit 0a98857)."""
 
     max_feet_ahead_m: float
     min_lean: float

@@ -60,7 +60,7 @@ class PushPriorConfig:
     # 12: a knot every 0.13 s. On learn_cpu's far-jump segment 12 reach ψ 1.58 m within the fall checks (read
     # by the feet's travel, which overstates it by 0.15–0.2 m), 20 reach 1.77 m read at the landing, and
     # every learn_cpu run over the 0.9 goal trained on a 20-knot prior, which learn_cpu searches by default
-    # (benchmarks/RESULTS.md, sessions 24, 26 and 27). 20 is not the default here: with a tiny search on the
+    # (benchmarks/RESULTS.md, commits 2184b6a, ff6fc64 and b822369). 20 is not the default here: with a tiny search on the
     # bundled sample its env landings strayed up to 0.12 m from the prior's (tests/test_push_prior.py; 12 knots:
     # 0.07). The sample's episodes start 35 frames before the push's window and reach it off the reference's state,
     # which the finer push is more sensitive to; where the window starts the episode (learn_cpu) they agree to 0.03 m.
@@ -71,7 +71,7 @@ class PushPriorConfig:
     # landing keyframe: feet no further ahead of the pelvis (m), trunk leaning forward no less (gravity's x in
     # the pelvis frame), pitching backward no faster (rad/s). See open_loop.LandingPosture. Off: on learn_cpu's
     # 2.3 s far-jump segment the policy trained on such a prior read 0.000 against 0.094 (benchmarks/RESULTS.md,
-    # session 35); only the push at w = 1 is searched, and the scaled ones still land in any posture.
+    # commit 0a98857); only the push at w = 1 is searched, and the scaled ones still land in any posture.
     reference_posture: bool = False
     posture_feet_ahead_margin_m: float = 0.1
     posture_lean_margin: float = 0.3

@@ -139,7 +139,7 @@ class TrainConfig:
     # The policy written at the end of a stage: 0 = the last iteration's weights; f > 0 = the mean of the
     # policy's weights (normalisers included) taken every `average_every` iterations over the last f of
     # the stage (pipeline/rl/averaging.py). Opt-in: on learn_cpu it read about a run's median snapshot, not
-    # always more than its last one (benchmarks/RESULTS.md, session 30).
+    # always more than its last one (benchmarks/RESULTS.md, commit 136f1b8).
     average_tail: float = 0.0
     average_every: int = 10
     ppo: PPOConfig = field(default_factory=PPOConfig)
