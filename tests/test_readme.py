@@ -17,6 +17,7 @@ Checked in README.md and docs/*.md (inline code, links, and the commands of ```b
 - Link anchors into markdown files (`RESULTS.md#where-it-stands`): a heading of that file.
 - params.yaml keys (`env.rewards.sigma2.feet_pos`, `dvc exp run -S key=...`, `--set key=...`): a field of the
   typed config dataclasses (pipeline/config.py's sections; `tasks.<name>.` resolves in TaskConfig).
+- ```yaml blocks that are params.yaml text (its sections, or entries of `tasks:`) pass the sections' validation.
 """
 
 from __future__ import annotations
@@ -45,9 +46,9 @@ FENCE = re.compile(r"^```(\w*)\s*$")
 
 
 # ------------------------------------------------------------------------------------------ reading pages
-def split_page(text: str) -> tuple[list[str], list[str], list[str]]:
-    """(inline code spans outside fences, link targets, command lines of bash blocks)."""
-    spans, links, commands = [], [], []
+def split_page(text: str) -> tuple[list[str], list[str], list[str], list[str]]:
+    """(inline code spans outside fences, link targets, command lines of bash blocks, yaml blocks)."""
+    spans, links, commands, yamls = [], [], [], []
     prose, block, lang = [], None, ""
     for line in text.splitlines():
         fence = FENCE.match(line.strip())
@@ -57,6 +58,8 @@ def split_page(text: str) -> tuple[list[str], list[str], list[str]]:
         if line.strip() == "```" and block is not None:
             if lang in ("bash", "sh", "shell", ""):
                 commands += _commands(block)
+            elif lang in ("yaml", "yml"):
+                yamls.append("\n".join(block))
             block = None
             continue
         if block is not None:
@@ -66,7 +69,7 @@ def split_page(text: str) -> tuple[list[str], list[str], list[str]]:
     body = "\n".join(prose)
     spans = re.findall(r"`([^`\n]+)`", body)
     links = re.findall(r"\]\(([^)\s]+)\)", body)
-    return spans, links, commands
+    return spans, links, commands, yamls
 
 
 def _commands(lines: list[str]) -> list[str]:
@@ -177,6 +180,39 @@ def key_problem(key: str) -> str | None:
     return None
 
 
+def yaml_problem(block: str) -> str | None:
+    """None when a yaml block is valid params.yaml text: whole sections, or task entries (a `tasks:` excerpt)."""
+    from pipeline.common.errors import PipelineInputError
+    from pipeline.config import TOP_LEVEL_KEYS, resolve_task_templates
+    from pipeline.envs.config import EnvConfig
+    from pipeline.evaluation.config import EvalConfig
+    from pipeline.keyframes.config import load_tasks
+    from pipeline.retarget.config import RetargetConfig
+    from pipeline.rl.config import TrainConfig
+
+    try:
+        raw = yaml.safe_load(block)
+    except yaml.YAMLError as error:
+        return f"yaml block does not parse: {error}"
+    if not isinstance(raw, dict):
+        return None
+    if set(raw) <= set(TOP_LEVEL_KEYS):
+        sections = raw
+    elif all(isinstance(v, dict) and ("input" in v or "extends" in v) for v in raw.values()):
+        sections = {"tasks": raw}  # an excerpt of `tasks:`
+    else:
+        return None  # not params.yaml text
+    parsers = {"retarget": RetargetConfig.from_dict, "env": EnvConfig.from_dict, "train": TrainConfig.from_dict,
+               "evaluate": EvalConfig.from_dict, "tasks": lambda t: load_tasks(resolve_task_templates(t, "README"))}
+    try:
+        for name, value in sections.items():
+            if name in parsers:
+                parsers[name](value)
+    except PipelineInputError as error:
+        return f"yaml block: {error}"
+    return None
+
+
 # ------------------------------------------------------------------------------------------ commands
 class Parsed(BaseException):
     """Raised instead of running the command, once argparse accepted its arguments (a BaseException, so that
@@ -248,9 +284,9 @@ def python_problem(argv: list[str]) -> str | None:
 
 def page_problems(text: str, monkeypatch, capsys, base: Path = ROOT) -> list[str]:
     """Everything a page names that does not exist (an empty list when all of it does)."""
-    spans, links, commands = split_page(text)
+    spans, links, commands, yamls = split_page(text)
+    problems = [p for block in yamls if (p := yaml_problem(block))]
     tracked, outputs = tracked_paths(), dvc_outputs()
-    problems = []
     for command in commands:
         try:
             argv = shlex.split(command.replace("[", "").replace("]", ""))
@@ -320,8 +356,9 @@ def test_every_command_path_and_key_a_page_names_exists(page, monkeypatch, capsy
 
 def test_the_readme_is_checked_for_real():
     """The checks above find what they are meant to in the README (so an empty problem list means something)."""
-    spans, links, commands = split_page((ROOT / "README.md").read_text())
+    spans, links, commands, yamls = split_page((ROOT / "README.md").read_text())
     assert any(c.split()[0].endswith("adamimic") for c in commands)
+    assert any("tasks:" in y for y in yamls)
     assert any(s.startswith("make ") for s in spans) and any(c.startswith("make ") for c in commands)
     assert any(KEY.match(s) for s in spans)
     assert any(looks_like_path(s) for s in spans) and any(l.startswith("benchmarks/RESULTS.md#") for l in links)
@@ -340,6 +377,13 @@ and [the record](benchmarks/RESULTS.md#no-such-chapter).
 .venv/bin/python -m pipeline.evaluation.no_such_module
 dvc exp run -S train.iterations_stage3=10
 ```
+
+```yaml
+  my_hop:
+    input: data/inputs/hop.npz
+    edit: {mode: sideways_please, keyframes: [landing]}
+    psi: {raw: 0.2, easy: [[0.05, 0.25]], hard: [[0.25, 0.5]]}
+```
 """
 
 
@@ -348,7 +392,7 @@ def test_made_up_commands_flags_paths_and_keys_are_each_caught(monkeypatch, caps
     expected = ["`adamimic fly", "has no option --colour", "make deploy-to-mars", "feet_position",
                 "learning_rate_of_doom", "pipeline/nowhere/thing.py", "#no-such-chapter", "--made-up-flag",
                 "--psi far", "learn_cpu.py` has no option --no-such-option", "train_stage1.py` has no option --fast",
-                "no_such_module.py` does not exist", "iterations_stage3"]
+                "no_such_module.py` does not exist", "iterations_stage3", "sideways_please"]
     for fragment in expected:
         assert any(fragment in p for p in problems), (fragment, problems)
     assert len(problems) == len(expected), problems
@@ -367,5 +411,23 @@ adamimic share --help
 .venv/bin/python stages/train_stage1.py --task T --variant V --resume
 dvc exp run -S profile=gpu -S 'variants=[adamimic]' -S train.ppo.l2c2_fraction=0.25
 ```
+
+```yaml
+env:
+  rewards: {sigma2: {feet_pos: 0.03}}
+train: {iterations_stage1: 10}
+tasks:
+  hop: {extends: high_jump, input: data/inputs/hop.npz}
+```
 """
     assert page_problems(real, monkeypatch, capsys) == []
+
+
+USER_FACING = [*PAGES, ROOT / "benchmarks" / "RESULTS.md", *sorted((ROOT / "models" / "pretrained").glob("*/README.md"))]
+
+
+@pytest.mark.parametrize("page", USER_FACING, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_figures_are_dated_by_day_or_commit_not_by_work_session(page):
+    """A reader cannot look up "session 31"; a date or a commit (`git show`) they can."""
+    hits = [line.strip()[:80] for line in page.read_text().splitlines() if re.search(r"\bsessions? \d", line, re.I)]
+    assert hits == []
