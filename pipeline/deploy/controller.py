@@ -253,8 +253,9 @@ class G1Controller:
 
 def run_deploy(export_dir: str | Path, psi: float, *, interface: str, domain_id: int = 0, dry_run: bool = False,
                go_flag: bool = False, odometry_topic: str | None = None, lockstep: bool = False,
-               safety: SafetyConfig = SafetyConfig(), on_tick=None) -> DeployReport:
-    """Connects to the robot (or the sim bridge) on `interface` and runs one episode."""
+               pose=None, safety: SafetyConfig = SafetyConfig(), on_tick=None) -> DeployReport:
+    """Connects to the robot (or the sim bridge) on `interface` and runs one episode. Odometry:
+    `odometry_topic` (nav_msgs Odometry_) or `pose`, a callable returning (world position, yaw)."""
     from pipeline.deploy.odometry import TopicPose
     from pipeline.deploy.transport import (LOW_CMD_TOPIC, LOW_STATE_TOPIC, CheckedReader, DdsLink, NullWriter,
                                            check_low_state)
@@ -262,7 +263,8 @@ def run_deploy(export_dir: str | Path, psi: float, *, interface: str, domain_id:
     link = DdsLink(domain_id, interface)
     reader = CheckedReader(link.reader(LOW_STATE_TOPIC, link.types.LowState), check_low_state)
     writer = NullWriter() if dry_run else link.writer(LOW_CMD_TOPIC, link.types.LowCmd)
-    pose = TopicPose(link, odometry_topic) if odometry_topic else None
+    if odometry_topic:
+        pose = TopicPose(link, odometry_topic)
     if not go_flag:
         print("deploy: press Enter for the go once the robot stands in the default pose", file=sys.stderr)
     controller = G1Controller(export_dir, psi, state_reader=reader, cmd_writer=writer, sdk=link.types,

@@ -67,9 +67,13 @@ class Odometry:
         return rotate_z(pose[0] - self.origin[0], -self.origin[1])
 
 
-def require_odometry(needs: bool, source: PoseSource | None, policy_json: str) -> Odometry | None:
+def require_odometry(needs: bool, source, policy_json: str) -> Odometry | None:
+    """The odometry of a `PoseSource` or a callable returning (position, yaw); an error naming the
+    observation term when the policy observes odometry and nothing provides it."""
     if needs and source is None:
         raise PipelineInputError(policy_json, "observation.terms",
                                  "the policy observes odometry; give --odometry-topic (nav_msgs Odometry_) "
                                  "or an odometry callable")
+    if source is not None and not hasattr(source, "pose"):
+        source = CallablePose(source)
     return Odometry(source) if source is not None else None

@@ -70,6 +70,9 @@ def check_low_cmd(cmd) -> str | None:
     return None
 
 
+_DOMAINS: dict[int, tuple[object, str]] = {}
+
+
 class DdsLink:
     """One participant on `domain_id`, bound to one network interface (`lo` for the sim bridge)."""
 
@@ -78,7 +81,12 @@ class DdsLink:
 
         self.domain_id, self.interface = int(domain_id), interface
         self.types = sdk_types()
-        self._domain = Domain(self.domain_id, _CONFIG.format(interface=interface))
+        # CycloneDDS allows one configured Domain per id in a process; links on the same id share it
+        if self.domain_id not in _DOMAINS:
+            _DOMAINS[self.domain_id] = (Domain(self.domain_id, _CONFIG.format(interface=interface)), interface)
+        elif _DOMAINS[self.domain_id][1] != interface:
+            raise ValueError(f"DDS domain {self.domain_id} is already bound to {_DOMAINS[self.domain_id][1]!r} "
+                             f"in this process, not {interface!r}")
         self.participant = DomainParticipant(self.domain_id)
         self._topics: dict[str, object] = {}
 
