@@ -79,7 +79,6 @@ def test_crc_matches_the_sdks(monkeypatch):
     from unitree_sdk2py.utils import crc as sdk_crc
 
     monkeypatch.setattr(platform, "system", lambda: "NotLinux")
-    monkeypatch.setattr(sdk_crc.CRC, "_instance", None, raising=False)
     reference = sdk_crc.CRC()
     rng = np.random.default_rng(0)
     for _ in range(3):

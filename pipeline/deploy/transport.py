@@ -1,7 +1,8 @@
 """The G1's low-level DDS interface: `unitree_hg` LowCmd_ on rt/lowcmd, LowState_ on rt/lowstate.
 
 Message types are the Unitree SDK 2's (unitree-sdk2 on PyPI), used with the CycloneDDS Python
-binding PyPI serves (cyclonedds 11.0.1, where the SDK pins 0.10.2). Proven together here:
+binding's wheel on PyPI (cyclonedds 11.0.1; the SDK pins 0.10.2, a source-only release that needs the
+C library to build). Proven together here:
 unitree-sdk2 1.0.1 + cyclonedds 11.0.1 (tests/test_deploy.py). That SDK wheel's package
 `__init__` imports a `b2` subpackage the wheel does not contain, so `import unitree_sdk2py` fails;
 `sdk_types()` registers an empty module under that name first. The SDK's channel factory is a
