@@ -102,13 +102,13 @@ def main(argv: list[str] | None = None) -> None:
         elif args.command == "deploy":
             import math
 
-            from pipeline.deploy.controller import _check_interface, run_deploy
+            from pipeline.deploy.controller import check_interface, run_deploy
             from pipeline.deploy.safety import SafetyConfig
 
             safety = SafetyConfig(damping_s=args.damping_s, ramp_s=args.ramp_s, hold_after_s=args.hold_after_s,
                                   state_timeout_s=args.state_timeout_s, max_tilt_rad=math.radians(args.max_tilt_deg),
                                   joint_margin_rad=args.joint_margin_rad)
-            report = run_deploy(args.policy, args.psi, interface=_check_interface(args.interface),
+            report = run_deploy(args.policy, args.psi, interface=check_interface(args.interface),
                                 domain_id=args.domain, dry_run=args.dry_run, go_flag=args.go,
                                 odometry_topic=args.odometry_topic, lockstep=args.lockstep, safety=safety)
             print(f"{report.end}: {report.message}")

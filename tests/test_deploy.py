@@ -377,3 +377,20 @@ def test_dry_run_publishes_nothing(export):
     assert len(report.phases) >= 3 and report.commands_written > 0 and "none published" in report.message
     time.sleep(0.2)
     assert commands.take(N=100) == []
+
+
+def test_key_go_counts_only_an_enter_pressed_once_armed():
+    import io
+
+    from pipeline.deploy.controller import KeyGo
+
+    read, write = os.pipe()
+    go = KeyGo(io.TextIOWrapper(os.fdopen(read, "rb")))
+    os.write(write, b"\n")  # pressed during the ramp: discarded
+    time.sleep(0.1)
+    go.arm()
+    time.sleep(0.05)
+    assert not go()
+    os.write(write, b"\n")
+    _wait(go)
+    os.close(write)

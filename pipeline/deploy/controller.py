@@ -45,12 +45,26 @@ class DeployReport:
 
 
 class KeyGo:
-    """The go: Enter on the terminal (read on a thread, so the loop never blocks)."""
+    """The go: Enter on the terminal, counted only once armed (standing in the default pose), read on
+    a thread so the loop never blocks. An Enter pressed earlier is discarded, not remembered."""
 
     def __init__(self, stream=None):
         self.event = threading.Event()
-        stream = stream or sys.stdin
-        threading.Thread(target=lambda: (stream.readline(), self.event.set()), daemon=True).start()
+        self.armed = False
+        self.stream = stream or sys.stdin
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for _ in self.stream:
+            if self.armed:
+                self.event.set()
+                return
+
+    def arm(self) -> None:
+        if not self.armed:
+            print("deploy: standing in the default pose; press Enter for the go (Ctrl-C: damping)",
+                  file=sys.stderr, flush=True)
+        self.armed = True
 
     def __call__(self) -> bool:
         return self.event.is_set()
@@ -183,6 +197,8 @@ class G1Controller:
                 if self.mode is Mode.STAND and finishing is not None and self._elapsed() >= self.safety.hold_after_s:
                     return self._finish(finishing, f"episode over ({finishing}), "
                                         f"{len(self.report.phases)} policy steps", last_q, mode_machine)
+                if self.mode is Mode.STAND and finishing is None and hasattr(self.go, "arm"):
+                    self.go.arm()
                 if self.mode is Mode.STAND and finishing is None and self.go():
                     self.stepper.reset()
                     if self.odometry is not None:
@@ -265,8 +281,6 @@ def run_deploy(export_dir: str | Path, psi: float, *, interface: str, domain_id:
     writer = NullWriter() if dry_run else link.writer(LOW_CMD_TOPIC, link.types.LowCmd)
     if odometry_topic:
         pose = TopicPose(link, odometry_topic)
-    if not go_flag:
-        print("deploy: press Enter for the go once the robot stands in the default pose", file=sys.stderr)
     controller = G1Controller(export_dir, psi, state_reader=reader, cmd_writer=writer, sdk=link.types,
                               safety=safety, go=(lambda: True) if go_flag else KeyGo(), pose_source=pose,
                               lockstep=lockstep, on_tick=on_tick)
@@ -276,7 +290,7 @@ def run_deploy(export_dir: str | Path, psi: float, *, interface: str, domain_id:
     return report
 
 
-def _check_interface(interface: str | None) -> str:
+def check_interface(interface: str | None) -> str:
     if not interface:
         raise PipelineInputError("deploy", "--interface", "name the network interface that reaches the robot "
                                  "(e.g. enp3s0; lo for the sim bridge)")
