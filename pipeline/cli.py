@@ -68,7 +68,8 @@ def main(argv: list[str] | None = None) -> None:
     deploy.add_argument("--odometry-topic", help="nav_msgs Odometry_ topic (sim-bridge: rt/adamimic/odometry)")
     deploy.add_argument("--lockstep", action="store_true", help="against `sim-bridge --lockstep` only")
     for key, default, text in (("damping-s", 1.0, "damping at the start"), ("ramp-s", 3.0, "ramp to the default pose"),
-                               ("hold-after-s", 2.0, "default pose after the episode"),
+                               ("hold-after-s", None, "default pose after the episode, then exit; "
+                                                      "unset: hold until Ctrl-C"),
                                ("state-timeout-s", 0.1, "LowState silence before damping"),
                                ("max-tilt-deg", 69.0, "base tilt before damping"),
                                ("joint-margin-rad", 0.1, "joint beyond its limit by this before damping")):

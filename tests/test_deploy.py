@@ -133,7 +133,8 @@ def test_motor_map_puts_27_joints_on_29_motors(export):
     motors = MotorMap.from_joint_names(meta["joint_names"])
     per_motor = motors.to_motors(np.arange(27.0) + 1, 0.0)
     assert per_motor.shape == (NUM_MOTORS,)
-    assert per_motor[G1_MOTOR_NAMES.index("waist_roll_joint")] == 0 == per_motor[G1_MOTOR_NAMES.index("waist_pitch_joint")]
+    waist = [G1_MOTOR_NAMES.index("waist_roll_joint"), G1_MOTOR_NAMES.index("waist_pitch_joint")]
+    assert np.all(per_motor[waist] == 0)
     assert per_motor[G1_MOTOR_NAMES.index("left_shoulder_pitch_joint")] == 1 + meta["joint_names"].index(
         "left_shoulder_pitch_joint")
     assert np.array_equal(motors.from_motors(per_motor), np.arange(27.0) + 1)
@@ -262,6 +263,26 @@ def test_watchdog_falls_back_to_damping_mid_episode(export, fault, reason):
     # a bad state is caught on the tick it arrives; silence once it is older than state_timeout_s
     late = 1 + int(np.ceil(QUICK.state_timeout_s / 0.02)) if fault == "silent" else 1
     assert 3 <= len(report.phases) <= 3 + late and all(np.all(c["kp"] == 0) for c in robot.commands[-5:])
+
+
+def test_after_the_episode_it_stands_until_ctrl_c(export):
+    meta = json.loads((export / "policy.json").read_text())
+    robot = FakeRobot(meta, follow=True)
+    robot.set_q(np.asarray(meta["default_joint_pos"]))
+
+    def on_tick(controller):
+        if controller.report.phases and controller.report.phases[-1] >= 1 and controller.mode.value == "stand":
+            if controller.tick - controller.mode_since >= 15:
+                raise KeyboardInterrupt
+        assert controller.tick < 200, "the episode did not end"
+
+    report = _controller(export, robot, go=lambda: True, on_tick=on_tick,
+                         safety=SafetyConfig(damping_s=0.0, ramp_s=0.1, hold_after_s=None)).run()
+    assert report.end == "interrupted" and report.phases[-1] >= 1
+    stand = [c for c in robot.commands if c["kp"][0] > 0][-10:]  # back at the default pose, held
+    default29 = robot.motors.to_motors(np.asarray(meta["default_joint_pos"]), 0.0)
+    assert all(np.allclose(c["q"], default29, atol=1e-6) for c in stand)
+    assert all(np.all(c["kp"] == 0) for c in robot.commands[-5:])
 
 
 def test_policy_needing_odometry_without_a_source_is_refused(export):

@@ -194,7 +194,9 @@ class G1Controller:
                     self._enter(Mode.RAMP)
                 if self.mode is Mode.RAMP and self._elapsed() >= self.safety.ramp_s:
                     self._enter(Mode.STAND)
-                if self.mode is Mode.STAND and finishing is not None and self._elapsed() >= self.safety.hold_after_s:
+                hold_after = self.safety.hold_after_s
+                if (self.mode is Mode.STAND and finishing is not None and hold_after is not None
+                        and self._elapsed() >= hold_after):
                     return self._finish(finishing, f"episode over ({finishing}), "
                                         f"{len(self.report.phases)} policy steps", last_q, mode_machine)
                 if self.mode is Mode.STAND and finishing is None and hasattr(self.go, "arm"):
@@ -214,8 +216,8 @@ class G1Controller:
                     if finishing is None:
                         target = self.default
                     else:  # after the episode: from the last policy target back to the default pose
-                        target = ramp_targets(ramp_from, self.default, elapsed,
-                                              min(self.safety.ramp_s, self.safety.hold_after_s))
+                        back_s = self.safety.ramp_s if hold_after is None else min(self.safety.ramp_s, hold_after)
+                        target = ramp_targets(ramp_from, self.default, elapsed, back_s)
                     self._write(clamp_targets(target, self.limits), self.kp, self.kd, mode_machine)
                 elif self.mode is Mode.POLICY:
                     odometry = (self.odometry.read() if self.odometry is not None and self.stepper.odometry_due()
@@ -233,12 +235,14 @@ class G1Controller:
                     if over is not None:
                         finishing, ramp_from = over, target
                         self._enter(Mode.STAND)
+                        if self.safety.hold_after_s is None:
+                            self.log(f"deploy: episode over ({over}); holding the default pose, Ctrl-C for damping")
                 self.tick += 1
                 if self.on_tick is not None:
                     self.on_tick(self)
                 next_tick = self._sleep(next_tick)
         except KeyboardInterrupt:
-            return self._finish("interrupted", "Ctrl-C", last_q, mode_machine)
+            return self._finish("interrupted", "Ctrl-C (or SIGTERM)", last_q, mode_machine)
         except RuntimeError as error:  # odometry missing at the go or mid-episode
             return self._finish("fault", str(error), last_q, mode_machine)
 
@@ -284,10 +288,22 @@ def run_deploy(export_dir: str | Path, psi: float, *, interface: str, domain_id:
     controller = G1Controller(export_dir, psi, state_reader=reader, cmd_writer=writer, sdk=link.types,
                               safety=safety, go=(lambda: True) if go_flag else KeyGo(), pose_source=pose,
                               lockstep=lockstep, on_tick=on_tick)
-    report = controller.run()
+    import signal
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None  # SIGTERM too ends in damping
+    try:
+        report = controller.run()
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     if dry_run:
         report.message += f" (dry run: {writer.withheld} commands built, none published)"
     return report
+
+
+def _interrupt(*_) -> None:
+    raise KeyboardInterrupt
 
 
 def check_interface(interface: str | None) -> str:

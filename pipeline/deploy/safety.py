@@ -1,10 +1,11 @@
 """The controller's modes and the watchdog that can send it to damping at any tick.
 
 Modes: DAMPING (start, kp = 0) → RAMP (measured pose → default pose, timed) → STAND (hold the
-default pose, wait for the go: a key or --go) → POLICY → STAND (after the episode, `hold_after_s`)
-→ exit in DAMPING. A fault (LowState older than `state_timeout_s`, a joint outside its range by
-more than `joint_margin_rad`, base tilt beyond `max_tilt_rad`) or Ctrl-C sends it to DAMPING and
-ends the run; nothing ever holds the last policy target.
+default pose, wait for the go: a key or --go) → POLICY → STAND (after the episode: back to the
+default pose, held until Ctrl-C or for `hold_after_s`) → exit in DAMPING. A fault (LowState older
+than `state_timeout_s`, a joint outside its range by more than `joint_margin_rad`, base tilt beyond
+`max_tilt_rad`) or Ctrl-C sends it to DAMPING and ends the run; nothing ever holds the last policy
+target.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ class Mode(enum.Enum):
 class SafetyConfig:
     damping_s: float = 1.0  # damping at the start, before the ramp
     ramp_s: float = 3.0  # measured pose → default pose
-    hold_after_s: float = 2.0  # default pose after the episode, then damping and exit
+    hold_after_s: float | None = None  # default pose after the episode for this long, then damping and
+    #                                    exit; None: hold it until Ctrl-C (a robot left standing, not sinking)
     state_timeout_s: float = 0.1  # LowState older than this → damping
     joint_margin_rad: float = 0.1  # measured joint beyond its limit by more than this → damping
     max_tilt_rad: float = 1.2  # base tilt (angle of gravity from the base's -z) beyond this → damping
@@ -37,7 +39,7 @@ class SafetyConfig:
 
     def __post_init__(self):
         for key in ("damping_s", "ramp_s", "hold_after_s", "damping_kd_scale"):
-            if not getattr(self, key) >= 0:
+            if getattr(self, key) is not None and not getattr(self, key) >= 0:
                 raise PipelineInputError("deploy", f"safety.{key}", f"must be >= 0, got {getattr(self, key)}")
         for key in ("state_timeout_s", "first_state_timeout_s", "joint_margin_rad", "max_tilt_rad"):
             if not getattr(self, key) > 0:
