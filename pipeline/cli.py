@@ -40,6 +40,10 @@ def stage_main(run: Callable, description: str = "", argv: list[str] | None = No
 
 def main(argv: list[str] | None = None) -> None:
     """`adamimic <command>`: user-facing tools beside `dvc repro` (play, share, sim2sim, deploy, sim-bridge)."""
+    import math
+
+    from pipeline.deploy.safety import SafetyConfig
+
     parser = argparse.ArgumentParser(prog="adamimic", description=main.__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -67,12 +71,16 @@ def main(argv: list[str] | None = None) -> None:
     deploy.add_argument("--dry-run", action="store_true", help="run everything, publish no command")
     deploy.add_argument("--odometry-topic", help="nav_msgs Odometry_ topic (sim-bridge: rt/adamimic/odometry)")
     deploy.add_argument("--lockstep", action="store_true", help="against `sim-bridge --lockstep` only")
-    for key, default, text in (("damping-s", 1.0, "damping at the start"), ("ramp-s", 3.0, "ramp to the default pose"),
-                               ("hold-after-s", None, "default pose after the episode, then exit; "
-                                                      "unset: hold until Ctrl-C"),
-                               ("state-timeout-s", 0.1, "LowState silence before damping"),
-                               ("max-tilt-deg", 69.0, "base tilt before damping"),
-                               ("joint-margin-rad", 0.1, "joint beyond its limit by this before damping")):
+    defaults = SafetyConfig()
+    for key, default, text in (("damping-s", defaults.damping_s, "damping at the start"),
+                               ("ramp-s", defaults.ramp_s, "ramp to the default pose"),
+                               ("hold-after-s", defaults.hold_after_s, "default pose after the episode, then exit; "
+                                                                       "unset: hold until Ctrl-C"),
+                               ("state-timeout-s", defaults.state_timeout_s, "LowState silence before damping"),
+                               ("max-tilt-deg", round(math.degrees(defaults.max_tilt_rad), 1),
+                                "base tilt before damping"),
+                               ("joint-margin-rad", defaults.joint_margin_rad,
+                                "joint beyond its limit by this before damping")):
         deploy.add_argument(f"--{key}", type=float, default=default, help=f"{text} (default {default})")
 
     bridge = sub.add_parser("sim-bridge", help="a MuJoCo G1 behind the robot's DDS interface, for `deploy`")
@@ -101,11 +109,7 @@ def main(argv: list[str] | None = None) -> None:
 
             print(share(args.path, args.out, repo_id=args.repo_id))
         elif args.command == "deploy":
-            import math
-
             from pipeline.deploy.controller import check_interface, run_deploy
-            from pipeline.deploy.safety import SafetyConfig
-
             safety = SafetyConfig(damping_s=args.damping_s, ramp_s=args.ramp_s, hold_after_s=args.hold_after_s,
                                   state_timeout_s=args.state_timeout_s, max_tilt_rad=math.radians(args.max_tilt_deg),
                                   joint_margin_rad=args.joint_margin_rad)
