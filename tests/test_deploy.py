@@ -391,7 +391,8 @@ def test_dry_run_publishes_nothing(export):
     thread.start()
     try:
         report = run_deploy(export, 1.4, interface="lo", domain_id=domain, dry_run=True, go_flag=True,
-                            pose=lambda: (np.zeros(3), 0.0), on_tick=_stop_after(10), safety=QUICK)
+                            pose=lambda: (np.zeros(3), 0.0), on_tick=_stop_after(10),
+                            safety=SafetyConfig(damping_s=0.04, ramp_s=0.1, state_timeout_s=0.5))
     finally:
         stop.set()
         thread.join()
