@@ -9,6 +9,10 @@ STAMP  := $(VENV)/.installed
 # torch<2.12, so it goes in with --no-deps plus only what `lerobot.datasets` imports (pinned).
 LEROBOT_READER := lerobot==0.4.4 datasets==4.8.5 huggingface_hub==0.35.3 accelerate==1.15.0 \
                   pandas==3.1.1 multiprocess==0.70.19 dill==0.4.1 xxhash==4.1.0 httpx==0.28.1
+# The Unitree SDK 2's message types for `adamimic deploy`. It pins cyclonedds==0.10.2, on PyPI only as
+# source that needs the Cyclone DDS C library to build; its types run on the cyclonedds wheel pinned in
+# pyproject.toml (tests/test_deploy.py), so it goes in with --no-deps.
+UNITREE_SDK := unitree-sdk2==1.0.1
 
 .PHONY: setup repro test bench clean-venv
 
@@ -18,6 +22,7 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install --quiet -e ".[test,warp]"
 	$(PY) -m pipeline.robot.assets
 	$(PY) -m pip install --quiet --no-deps $(LEROBOT_READER)
+	$(PY) -m pip install --quiet --no-deps $(UNITREE_SDK)
 	$(PY) -m pipeline.motion.importers --fetch-test-clips
 	@touch $(STAMP)
 

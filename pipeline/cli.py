@@ -39,7 +39,11 @@ def stage_main(run: Callable, description: str = "", argv: list[str] | None = No
 
 
 def main(argv: list[str] | None = None) -> None:
-    """`adamimic <command>`: user-facing tools beside `dvc repro` (play, share, sim2sim)."""
+    """`adamimic <command>`: user-facing tools beside `dvc repro` (play, share, sim2sim, deploy, sim-bridge)."""
+    import math
+
+    from pipeline.deploy.safety import SafetyConfig
+
     parser = argparse.ArgumentParser(prog="adamimic", description=main.__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -58,6 +62,37 @@ def main(argv: list[str] | None = None) -> None:
     share.add_argument("--out", type=Path, required=True, help="hub-format folder to write")
     share.add_argument("--repo-id", help="Hugging Face repo id to push to (needs network and a token)")
 
+    deploy = sub.add_parser("deploy", help="run the exported policy on a G1 over its low-level DDS interface")
+    deploy.add_argument("policy", type=Path, help="exported policy folder (policy.onnx + policy.json)")
+    deploy.add_argument("--psi", type=float, required=True, help="task variable, metres")
+    deploy.add_argument("--interface", help="network interface that reaches the robot (lo for sim-bridge)")
+    deploy.add_argument("--domain", type=int, default=0, help="DDS domain id (the robot uses 0)")
+    deploy.add_argument("--go", action="store_true", help="start the policy as soon as the ramp ends (no key)")
+    deploy.add_argument("--dry-run", action="store_true", help="run everything, publish no command")
+    deploy.add_argument("--odometry-topic", help="nav_msgs Odometry_ topic (sim-bridge: rt/adamimic/odometry)")
+    deploy.add_argument("--lockstep", action="store_true", help="against `sim-bridge --lockstep` only")
+    defaults = SafetyConfig()
+    for key, default, text in (("damping-s", defaults.damping_s, "damping at the start"),
+                               ("ramp-s", defaults.ramp_s, "ramp to the default pose"),
+                               ("hold-after-s", defaults.hold_after_s, "default pose after the episode, then exit; "
+                                                                       "unset: hold until Ctrl-C"),
+                               ("state-timeout-s", defaults.state_timeout_s, "LowState silence before damping"),
+                               ("max-tilt-deg", round(math.degrees(defaults.max_tilt_rad), 1),
+                                "base tilt before damping"),
+                               ("joint-margin-rad", defaults.joint_margin_rad,
+                                "joint beyond its limit by this before damping")):
+        deploy.add_argument(f"--{key}", type=float, default=default, help=f"{text} (default {default})")
+
+    bridge = sub.add_parser("sim-bridge", help="a MuJoCo G1 behind the robot's DDS interface, for `deploy`")
+    bridge.add_argument("policy", type=Path, help="exported policy folder (for the scene, gains and start state)")
+    bridge.add_argument("--psi", type=float, required=True)
+    bridge.add_argument("--interface", default="lo")
+    bridge.add_argument("--domain", type=int, default=0)
+    bridge.add_argument("--lockstep", action="store_true", help="one control period per LowCmd (tests)")
+    bridge.add_argument("--sim-dt", type=float, default=0.002, help="physics and motor-law period (default 500 Hz)")
+    bridge.add_argument("--seconds", type=float, default=None, help="stop after this long (default: SIGTERM/Ctrl-C)")
+    bridge.add_argument("--trace", type=Path, help="write the per-control-period pelvis and sites here (.npz)")
+
     args = parser.parse_args(argv)
     try:
         if args.command == "play":
@@ -73,6 +108,26 @@ def main(argv: list[str] | None = None) -> None:
             from pipeline.share import share
 
             print(share(args.path, args.out, repo_id=args.repo_id))
+        elif args.command == "deploy":
+            from pipeline.deploy.controller import check_interface, run_deploy
+            safety = SafetyConfig(damping_s=args.damping_s, ramp_s=args.ramp_s, hold_after_s=args.hold_after_s,
+                                  state_timeout_s=args.state_timeout_s, max_tilt_rad=math.radians(args.max_tilt_deg),
+                                  joint_margin_rad=args.joint_margin_rad)
+            report = run_deploy(args.policy, args.psi, interface=check_interface(args.interface),
+                                domain_id=args.domain, dry_run=args.dry_run, go_flag=args.go,
+                                odometry_topic=args.odometry_topic, lockstep=args.lockstep, safety=safety)
+            print(f"{report.end}: {report.message}")
+            sys.exit(report.exit_code)
+        elif args.command == "sim-bridge":
+            from pipeline.deploy.bridge import SimBridge
+            from pipeline.deploy.transport import DdsLink
+
+            sim = SimBridge(args.policy, args.psi, link=DdsLink(args.domain, args.interface),
+                            lockstep=args.lockstep, sim_dt=args.sim_dt)
+            print(f"sim-bridge: G1 on domain {args.domain} via {args.interface}", file=sys.stderr, flush=True)
+            sim.run(args.seconds)
+            if args.trace is not None:
+                sim.save_trace(args.trace)
     except PipelineInputError as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(2)

@@ -22,9 +22,10 @@ import mujoco
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.export.policy_step import (METADATA_NAME, ObservationBuilder, PolicyStepper,  # noqa: F401
+                                         projected_gravity, rotate_z, yaw_of)
 
 ONNX_NAME = "policy.onnx"
-METADATA_NAME = "policy.json"
 
 
 class PsiOutOfRangeWarning(UserWarning):
@@ -190,6 +191,45 @@ class FallCheck:
         return None
 
 
+# ------------------------------------------------------------------------------ judging
+class EpisodeJudge:
+    """The evaluation's verdict on one episode, fed step by step with what a simulator measures:
+    keyframe errors when the phase passes a keyframe, the fall checks at the current frame."""
+
+    def __init__(self, meta: dict, psi: float, keyframe_targets: np.ndarray):
+        self.keyframe_phases = np.asarray(meta["keyframes"]["phases"])
+        self.targets = keyframe_targets  # (K, B, 3)
+        self.error_limit = (meta.get("terminations") or {}).get("keyframe_body_error_m")
+        self.threshold = float(meta.get("success_threshold_m", 1.0))
+        self.fall = FallCheck.from_metadata(meta, psi)
+        self.num_frames = int(meta["phase"]["num_frames"])
+        self.errors: list[float] = []
+        self.next_keyframe = 0
+
+    def update(self, phase: float, site_xpos: np.ndarray, gravity: np.ndarray, base_height: float) -> str | None:
+        """After a step that reached `phase`: the end reason ("keyframe_error", "tilt", "height",
+        "done") or None to go on."""
+        end = None
+        while (self.next_keyframe < len(self.keyframe_phases)
+               and self.keyframe_phases[self.next_keyframe] <= phase + 1e-6):
+            err = np.linalg.norm(site_xpos - self.targets[self.next_keyframe], axis=-1)
+            self.errors.append(float(err.mean()))
+            self.next_keyframe += 1
+            if self.error_limit is not None and err.max() > self.error_limit:
+                end = "keyframe_error"
+        if end is not None:
+            return end
+        fallen = self.fall(gravity, base_height, reference_frame(phase, self.num_frames))
+        if fallen is not None:
+            return fallen
+        return "done" if phase >= 1.0 - 1e-6 else None
+
+    @property
+    def success(self) -> bool:
+        # the evaluation's definition: every keyframe reached, none with body-mean error > threshold
+        return len(self.errors) == len(self.keyframe_phases) and all(e <= self.threshold for e in self.errors)
+
+
 # ------------------------------------------------------------------------------ observations
 @dataclass
 class RobotState:
@@ -204,52 +244,13 @@ class RobotState:
         return self.data.qvel[3:6].copy()  # free joint: body-frame angular velocity
 
     def projected_gravity(self) -> np.ndarray:
-        w, x, y, z = self.data.qpos[3:7]
-        # R^T @ (0, 0, -1), written out for the quaternion (w, x, y, z)
-        return -np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+        return projected_gravity(self.data.qpos[3:7])
 
     def joint_pos(self) -> np.ndarray:
         return self.data.qpos[self.joint_qpos].copy()
 
     def joint_vel(self) -> np.ndarray:
         return self.data.qvel[self.joint_qvel].copy()
-
-
-class ObservationBuilder:
-    """One step's observation from the metadata's term list, and the oldest-first history."""
-
-    def __init__(self, layout: dict, control_rate_hz: float):
-        self.terms = layout["terms"]
-        self.history = int(layout["history"])
-        self.step_dim = int(layout["step_dim"])
-        if layout.get("history_order", "oldest_first") != "oldest_first":
-            raise PipelineInputError(METADATA_NAME, "observation.history_order",
-                                     f"unsupported {layout.get('history_order')!r}")
-        known = {"base_ang_vel", "projected_gravity", "joint_pos", "joint_vel", "last_action", "phase",
-                 "psi", "odometry"}
-        for term in self.terms:
-            if term["name"] not in known:
-                raise PipelineInputError(METADATA_NAME, "observation.terms",
-                                         f"term {term['name']!r} is unknown to this deployment loop")
-        self.control_rate_hz = control_rate_hz
-        self.buffer: np.ndarray | None = None
-
-    def reset(self) -> None:
-        self.buffer = None
-
-    def step(self, values: dict[str, np.ndarray]) -> np.ndarray:
-        parts = []
-        for term in self.terms:
-            v = np.asarray(values[term["name"]], dtype=np.float64).reshape(-1)
-            if "offset" in term:
-                v = v - np.asarray(term["offset"])
-            parts.append(v * np.asarray(term.get("scale", 1.0)))
-        frame = np.concatenate(parts).astype(np.float32)
-        if self.buffer is None:
-            self.buffer = np.tile(frame, (self.history, 1))
-        else:
-            self.buffer = np.concatenate([self.buffer[1:], frame[None]], axis=0)
-        return self.buffer.reshape(1, -1)
 
 
 # ------------------------------------------------------------------------------ the loop
@@ -262,34 +263,33 @@ class EpisodeResult:
     end: str  # "done" (phase reached 1), "tilt", "height", "keyframe_error", "max_steps"
     phase: list[float] = field(default_factory=list)
     phase_rate_offset: list[float] = field(default_factory=list)
+    final_base_pos: list[float] = field(default_factory=list)  # world pelvis position at the end
 
 
 class Sim2Sim:
     def __init__(self, policy_dir: str | Path, *, task: str | None = None, robot: str | None = None):
         self.session, self.meta = load_exported(policy_dir, task=task, robot=robot)
         m = self.meta
-        self.control_dt = float(m["control_dt"])
+        self.stepper = PolicyStepper(self.session, m)
+        self.control_dt = self.stepper.control_dt
         self.decimation = int(round(m["control_dt"] / m["sim_dt"]))
         self.default_joint_pos = np.asarray(m["default_joint_pos"])
-        self.phase_rate = float(m["phase"]["rate"])
-        self.offset_bounds = m["phase"]["offset_bounds"]
+        self.phase_rate = self.stepper.phase_rate
+        self.offset_bounds = self.stepper.offset_bounds
         kf = m["keyframes"]
         self.keyframe_phases = np.asarray(kf["phases"])
         self.keyframe_body_pos = np.asarray(kf["body_pos"])  # (K, B, 3)
         self.keyframe_grid = kf["psi_grid"]
         self.keyframe_offsets = np.asarray(kf["offsets"])  # (G, K, 3)
-        self.obs = ObservationBuilder(m["observation"], 1.0 / self.control_dt)
+        self.obs = self.stepper.obs
         self.threshold = float(m.get("success_threshold_m", 1.0))
-        self.output_names = [o.name for o in self.session.get_outputs()]
-        self.input_name = self.session.get_inputs()[0].name
 
     def keyframe_targets(self, psi: float) -> np.ndarray:
         offsets = _interp_grid(self.keyframe_grid, self.keyframe_offsets, psi)  # (K, 3)
         return self.keyframe_body_pos + offsets[:, None, :]
 
     def policy(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        outs = dict(zip(self.output_names, self.session.run(self.output_names, {self.input_name: obs})))
-        return outs["joint_targets"][0], outs["action"][0], float(outs["phase_rate_offset"].reshape(-1)[0])
+        return self.stepper.run(obs)
 
     def run_episode(self, psi: float, *, max_steps: int | None = None,
                     on_step: Callable[[mujoco.MjModel, mujoco.MjData, dict], None] | None = None,
@@ -310,72 +310,33 @@ class Sim2Sim:
         mujoco.mj_forward(model, data)
 
         targets = self.keyframe_targets(psi)
-        term = m.get("terminations") or {}
-        fall = FallCheck.from_metadata(m, psi)
-        num_frames = int(m["phase"]["num_frames"])
+        judge = EpisodeJudge(m, psi, targets)
         start_pos = data.qpos[0:3].copy()
-        w, x, y, z = data.qpos[3:7]
-        start_yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        odo_every = self._odometry_period()
-        odometry = np.zeros(3)
-        last_action = np.zeros(len(m["joint_names"]))
-        phase, next_kf = 0.0, 0
-        errors: list[float] = []
+        start_yaw = yaw_of(data.qpos[3:7])
         phases, offsets = [], []
         limit = max_steps or int(np.ceil(4.0 / self.phase_rate))  # phase may slow down to 0.25×
-        self.obs.reset()
+        stepper = self.stepper
+        stepper.reset()
         end = "max_steps"
         step = 0
         for step in range(1, limit + 1):
-            if (step - 1) % odo_every == 0:
-                odometry = _rotate_z(data.qpos[0:3] - start_pos, -start_yaw)
-            obs = self.obs.step({
-                "base_ang_vel": state.base_ang_vel(), "projected_gravity": state.projected_gravity(),
-                "joint_pos": state.joint_pos(), "joint_vel": state.joint_vel(), "last_action": last_action,
-                "phase": np.array([phase]), "psi": np.array([psi]), "odometry": odometry,
-            })
-            joint_targets, last_action, dphi = self.policy(obs)
-            dphi = float(np.clip(dphi, *self.offset_bounds))
-            data.ctrl[actuators] = joint_targets
+            odometry = rotate_z(data.qpos[0:3] - start_pos, -start_yaw) if stepper.odometry_due() else None
+            out = stepper.step(base_ang_vel=state.base_ang_vel(), projected_gravity=state.projected_gravity(),
+                               joint_pos=state.joint_pos(), joint_vel=state.joint_vel(), psi=psi,
+                               odometry=odometry)
+            data.ctrl[actuators] = out.joint_targets
             for _ in range(self.decimation):
                 mujoco.mj_step(model, data)
-            new_phase = phase + self.phase_rate + dphi  # unclamped, as the env observes it
-            phases.append(new_phase)
-            offsets.append(dphi)
-            info = {"phase": new_phase, "psi": psi, "keyframe_targets": targets, "step": step}
-            while next_kf < len(self.keyframe_phases) and self.keyframe_phases[next_kf] <= new_phase + 1e-6:
-                err = np.linalg.norm(data.site_xpos[sites] - targets[next_kf], axis=-1)
-                errors.append(float(err.mean()))
-                limit_err = term.get("keyframe_body_error_m")
-                next_kf += 1
-                if limit_err is not None and err.max() > limit_err:
-                    end = "keyframe_error"
-            phase = new_phase
+            phases.append(out.phase)
+            offsets.append(out.phase_rate_offset)
+            verdict = judge.update(out.phase, data.site_xpos[sites], state.projected_gravity(), float(data.qpos[2]))
             if on_step is not None:
-                on_step(model, data, info)
-            if end == "keyframe_error":
+                on_step(model, data, {"phase": out.phase, "psi": psi, "keyframe_targets": targets, "step": step})
+            if verdict is not None:
+                end = verdict
                 break
-            fallen = fall(state.projected_gravity(), float(data.qpos[2]), reference_frame(phase, num_frames))
-            if fallen is not None:
-                end = fallen
-                break
-            if phase >= 1.0 - 1e-6:
-                end = "done"
-                break
-        # the evaluation's definition: every keyframe reached, none with body-mean error > threshold
-        success = len(errors) == len(self.keyframe_phases) and all(e <= self.threshold for e in errors)
-        return EpisodeResult(float(psi), bool(success), errors, step, end, phases, offsets)
-
-    def _odometry_period(self) -> int:
-        for term in self.meta["observation"]["terms"]:
-            if term["name"] == "odometry" and term.get("rate_hz"):
-                return max(1, int(round(1.0 / (self.control_dt * term["rate_hz"]))))
-        return 1
-
-
-def _rotate_z(v: np.ndarray, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+        return EpisodeResult(float(psi), judge.success, judge.errors, step, end, phases, offsets,
+                             data.qpos[0:3].tolist())
 
 
 def run_sim2sim(policy_dir: str | Path, psi_values, *, task: str | None = None,

@@ -1,0 +1,418 @@
+"""G1 deployment: CRC and message checks, the safety modes and watchdog, and the controller against
+the MuJoCo sim bridge over DDS on the loopback interface (a random domain per test).
+
+Proven together: unitree-sdk2 1.0.1 (its unitree_hg types) with cyclonedds 11.0.1 (PROVEN below).
+"""
+
+import json
+import os
+import platform
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from importlib.metadata import version
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.deploy.controller import G1Controller
+from pipeline.deploy.crc import low_cmd_crc, low_state_crc
+from pipeline.deploy.motors import G1_MOTOR_NAMES, NUM_MOTORS, MotorMap
+from pipeline.deploy.safety import Measured, SafetyConfig, Watchdog
+from pipeline.deploy.transport import Received, check_low_state, sdk_types
+
+PROVEN = {"unitree-sdk2": "1.0.1", "cyclonedds": "11.0.1"}
+SDK = sdk_types()
+QUICK = SafetyConfig(damping_s=0.04, ramp_s=0.1, hold_after_s=0.04)
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory):
+    """A far-jump export (stand-in network, the real metadata contract), as tests/test_export.py makes it."""
+    from test_export import ComposedStandIn, _tracking_data
+
+    from pipeline.export.metadata import build_metadata, observation_layout
+    from pipeline.export.onnx_export import DeployedPolicy, export_folder
+    from pipeline.robot.g1 import load_robot_config
+
+    torch.manual_seed(0)
+    cfg = load_robot_config()
+    layout = observation_layout(cfg, history=5)
+    module = DeployedPolicy(ComposedStandIn(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
+    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(), obs_layout=layout)
+    return export_folder(module, layout["dim"], meta, tmp_path_factory.mktemp("deploy") / "export").folder
+
+
+def _domain() -> int:
+    return random.randint(1, 230)
+
+
+# ------------------------------------------------------------------------------ versions, CRC, messages
+def test_proven_versions_are_installed():
+    assert {name: version(name) for name in PROVEN} == PROVEN
+
+
+def _random_messages(rng):
+    cmd, state = SDK.new_low_cmd(), SDK.new_low_state()
+    cmd.mode_machine = 5
+    for i, m in enumerate(cmd.motor_cmd):
+        m.mode, m.q, m.kp, m.kd, m.tau, m.reserve = 1, *rng.normal(size=4).tolist(), i
+    state.tick = 123456
+    state.imu_state.quaternion = rng.normal(size=4).tolist()
+    for i, m in enumerate(state.motor_state):
+        m.q, m.dq, m.tau_est, m.temperature = *rng.normal(size=3).tolist(), [30 + i, -i]
+    state.wireless_remote = list(range(40))
+    return cmd, state
+
+
+def test_crc_matches_the_sdks(monkeypatch):
+    """Ours (zlib, fast) against the SDK's own packing and bitwise CRC (its pure-Python path: the
+    wheel lacks the shared library its Linux path loads)."""
+    from unitree_sdk2py.utils import crc as sdk_crc
+
+    monkeypatch.setattr(platform, "system", lambda: "NotLinux")
+    reference = sdk_crc.CRC()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        cmd, state = _random_messages(rng)
+        assert low_cmd_crc(cmd) == reference.Crc(cmd)
+        assert low_state_crc(state) == reference.Crc(state)
+
+
+def test_unsound_low_states_are_refused():
+    _, state = _random_messages(np.random.default_rng(1))
+    state.crc = low_state_crc(state)
+    assert check_low_state(state) is None
+    state.motor_state[3].q += 1e-3  # one value changed after signing
+    assert "CRC mismatch" in check_low_state(state)
+    state.motor_state = state.motor_state[:29]
+    assert "29 motor states" in check_low_state(state)
+
+
+def test_bad_crc_and_wrong_motor_count_over_dds():
+    """A LowState with a bad CRC reaches the reader and is refused; one with 29 motor slots cannot
+    even be written with the robot's type (a fixed array of 35)."""
+    from pipeline.deploy.transport import LOW_STATE_TOPIC, CheckedReader, DdsLink
+
+    link = DdsLink(_domain(), "lo")
+    reader = CheckedReader(link.reader(LOW_STATE_TOPIC, SDK.LowState), check_low_state)
+    writer = link.writer(LOW_STATE_TOPIC, SDK.LowState)
+    good, bad = SDK.new_low_state(), SDK.new_low_state()
+    good.tick, bad.tick = 1, 2
+    good.crc = low_state_crc(good)
+    bad.crc = low_state_crc(bad) ^ 1
+    writer.write(good)
+    _wait(lambda: reader.poll() is not None)
+    writer.write(bad)
+    _wait(lambda: (reader.poll(), reader.refused)[1] == 1)
+    assert reader.latest.message.tick == 1 and "CRC mismatch" in reader.last_refusal
+    short = SDK.new_low_state()
+    short.motor_state = short.motor_state[:29]
+    with pytest.raises(Exception, match="motor_state"):
+        writer.write(short)
+
+
+def _wait(condition, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.005)
+
+
+# ------------------------------------------------------------------------------ motors and safety
+def test_motor_map_puts_27_joints_on_29_motors(export):
+    meta = json.loads((export / "policy.json").read_text())
+    motors = MotorMap.from_joint_names(meta["joint_names"])
+    per_motor = motors.to_motors(np.arange(27.0) + 1, 0.0)
+    assert per_motor.shape == (NUM_MOTORS,)
+    waist = [G1_MOTOR_NAMES.index("waist_roll_joint"), G1_MOTOR_NAMES.index("waist_pitch_joint")]
+    assert np.all(per_motor[waist] == 0)
+    assert per_motor[G1_MOTOR_NAMES.index("left_shoulder_pitch_joint")] == 1 + meta["joint_names"].index(
+        "left_shoulder_pitch_joint")
+    assert np.array_equal(motors.from_motors(per_motor), np.arange(27.0) + 1)
+    with pytest.raises(PipelineInputError, match="not motors of the 29-DoF G1"):
+        MotorMap.from_joint_names([*meta["joint_names"][:-1], "tail_joint"])
+    with pytest.raises(PipelineInputError, match="does not drive"):
+        MotorMap.from_joint_names(meta["joint_names"][:-1])
+
+
+def test_watchdog_reasons():
+    limits = np.array([[-1.0, 1.0], [-0.5, 0.5]])
+    dog = Watchdog(SafetyConfig(state_timeout_s=0.1, joint_margin_rad=0.1, max_tilt_rad=np.radians(45)), limits,
+                   ["a_joint", "b_joint"])
+    upright = dict(joint_pos=np.zeros(2), joint_vel=np.zeros(2), gravity=np.array([0, 0, -1.0]),
+                   base_ang_vel=np.zeros(3), age_s=0.01)
+    assert dog.fault(Measured(**upright)) is None
+    assert "LowState stopped" in dog.fault(Measured(**{**upright, "age_s": 0.15}))
+    assert dog.fault(Measured(**{**upright, "joint_pos": np.array([0.0, 0.59])})) is None  # inside the margin
+    assert "b_joint" in dog.fault(Measured(**{**upright, "joint_pos": np.array([0.0, 0.61])}))
+    tilt = np.radians(50)
+    assert "tilted 50 deg" in dog.fault(Measured(**{**upright, "gravity": np.array([np.sin(tilt), 0, -np.cos(tilt)])}))
+    with pytest.raises(PipelineInputError, match="safety.state_timeout_s"):
+        SafetyConfig(state_timeout_s=0)
+
+
+class FakeRobot:
+    """A LowState source that holds its pose (or follows the commanded q) and records every command."""
+
+    def __init__(self, meta, follow=False, quat=(1.0, 0.0, 0.0, 0.0)):
+        self.motors = MotorMap.from_joint_names(meta["joint_names"])
+        self.state = SDK.new_low_state()
+        self.state.imu_state.quaternion = list(quat)
+        self.set_q(np.asarray(meta["default_joint_pos"]) + 0.05)  # not at the default pose
+        self.follow, self.silent, self.refused = follow, False, 0
+        self.commands: list[dict] = []
+        self.latest = None
+
+    def set_q(self, q_joint):
+        for i, q in enumerate(self.motors.to_motors(q_joint, 0.0)):
+            self.state.motor_state[i].q = float(q)
+
+    def poll(self):
+        if not self.silent:
+            self.state.tick += 20
+            self.latest = Received(self.state, time.monotonic())
+        return self.latest
+
+    def write(self, cmd):
+        assert low_cmd_crc(cmd) == cmd.crc
+        motors = cmd.motor_cmd[:NUM_MOTORS]
+        self.commands.append({k: np.array([getattr(m, k) for m in motors]) for k in ("q", "kp", "kd", "mode")})
+        if self.follow and cmd.motor_cmd[0].kp > 0:
+            self.set_q(self.motors.from_motors(self.commands[-1]["q"]))
+
+
+def _controller(export, robot, **kw):
+    kw.setdefault("safety", QUICK)
+    return G1Controller(export, 1.4, state_reader=robot, cmd_writer=robot, sdk=SDK,
+                        pose_source=kw.pop("pose", lambda: (np.zeros(3), 0.0)), log=lambda line: None, **kw)
+
+
+def _stop_after(ticks):
+    def on_tick(controller):
+        if controller.tick >= ticks:
+            raise KeyboardInterrupt
+    return on_tick
+
+
+def test_damping_then_ramp_then_waits_for_the_go(export):
+    meta = json.loads((export / "policy.json").read_text())
+    robot = FakeRobot(meta)
+    start_q = robot.motors.to_motors(np.asarray(meta["default_joint_pos"]) + 0.05, 0.0)
+    report = _controller(export, robot, go=lambda: False, on_tick=_stop_after(12)).run()
+    assert [m for _, m in report.modes] == ["damping", "ramp", "stand", "damping"]
+    assert report.end == "interrupted" and not report.phases  # no go, no policy step
+    first = robot.commands[0]
+    assert np.all(first["kp"] == 0) and np.all(first["kd"] > 0)  # damping
+    ramp = [c for c in robot.commands if c["kp"][0] > 0]
+    default29 = robot.motors.to_motors(np.asarray(meta["default_joint_pos"]), 0.0)
+    assert np.allclose(ramp[0]["q"], start_q, atol=1e-6)  # from the measured pose ...
+    assert np.allclose(ramp[-1]["q"], default29, atol=1e-6)  # ... to the default pose
+    middle = ramp[len(ramp) // 2 - 1]["q"]
+    assert np.all((middle - default29) * (start_q - default29) >= -1e-9)  # on the way between them
+    waist = [G1_MOTOR_NAMES.index("waist_roll_joint"), G1_MOTOR_NAMES.index("waist_pitch_joint")]
+    assert all(np.all(c["q"][waist] == 0) and np.all(c["kp"][waist] > 0) for c in ramp)  # locked waist held at 0
+    assert np.all(robot.commands[-1]["kp"] == 0)  # Ctrl-C: damping, not the held pose
+
+
+def test_ctrl_c_mid_episode_damps_and_targets_are_clamped(export, tmp_path):
+    narrow = tmp_path / "narrow"
+    shutil.copytree(export, narrow)
+    meta = json.loads((narrow / "policy.json").read_text())
+    default = np.asarray(meta["default_joint_pos"])
+    meta["joint_limits"] = np.stack([default - 0.01, default + 0.01], axis=1).tolist()
+    (narrow / "policy.json").write_text(json.dumps(meta))
+    robot = FakeRobot(meta, follow=True)
+    robot.set_q(default)
+    report = _controller(narrow, robot, go=lambda: True, on_tick=_stop_after(15)).run()
+    assert report.end == "interrupted" and len(report.phases) >= 5
+    policy = [c for c in robot.commands if c["kp"][0] > 0][-len(report.phases):]
+    q = np.array([robot.motors.from_motors(c["q"]) for c in policy])
+    assert np.all(np.abs(q - default) <= 0.01 + 1e-6) and np.ptp(q, axis=0).max() > 0  # clamped, still moving
+    tail = robot.commands[-5:]
+    assert all(np.all(c["kp"] == 0) for c in tail)  # damping after Ctrl-C, never the last target
+
+
+@pytest.mark.parametrize("fault, reason", [("silent", "LowState stopped"), ("joint", "left its range"),
+                                           ("tilt", "tilted")])
+def test_watchdog_falls_back_to_damping_mid_episode(export, fault, reason):
+    meta = json.loads((export / "policy.json").read_text())
+    robot = FakeRobot(meta)
+    robot.set_q(np.asarray(meta["default_joint_pos"]))
+
+    def on_tick(controller):
+        if len(controller.report.phases) == 3:
+            if fault == "silent":
+                robot.silent = True
+            elif fault == "joint":
+                robot.state.motor_state[G1_MOTOR_NAMES.index("left_knee_joint")].q = 4.0
+            else:
+                robot.state.imu_state.quaternion = [float(np.cos(0.7)), 0.0, float(np.sin(0.7)), 0.0]  # 80 deg
+        assert controller.tick < 100, "no fault"
+
+    report = _controller(export, robot, go=lambda: True, on_tick=on_tick).run()
+    assert report.end == "fault" and reason in report.message and report.exit_code == 3
+    # a bad state is caught on the tick it arrives; silence once it is older than state_timeout_s
+    late = 1 + int(np.ceil(QUICK.state_timeout_s / 0.02)) if fault == "silent" else 1
+    assert 3 <= len(report.phases) <= 3 + late and all(np.all(c["kp"] == 0) for c in robot.commands[-5:])
+
+
+def test_after_the_episode_it_stands_until_ctrl_c(export):
+    meta = json.loads((export / "policy.json").read_text())
+    robot = FakeRobot(meta, follow=True)
+    robot.set_q(np.asarray(meta["default_joint_pos"]))
+
+    def on_tick(controller):
+        if controller.report.phases and controller.report.phases[-1] >= 1 and controller.mode.value == "stand":
+            if controller.tick - controller.mode_since >= 15:
+                raise KeyboardInterrupt
+        assert controller.tick < 200, "the episode did not end"
+
+    report = _controller(export, robot, go=lambda: True, on_tick=on_tick,
+                         safety=SafetyConfig(damping_s=0.0, ramp_s=0.1, hold_after_s=None)).run()
+    assert report.end == "interrupted" and report.phases[-1] >= 1
+    stand = [c for c in robot.commands if c["kp"][0] > 0][-10:]  # back at the default pose, held
+    default29 = robot.motors.to_motors(np.asarray(meta["default_joint_pos"]), 0.0)
+    assert all(np.allclose(c["q"], default29, atol=1e-6) for c in stand)
+    assert all(np.all(c["kp"] == 0) for c in robot.commands[-5:])
+
+
+def test_policy_needing_odometry_without_a_source_is_refused(export):
+    with pytest.raises(PipelineInputError, match="observation.terms.*odometry"):
+        G1Controller(export, 1.4, state_reader=None, cmd_writer=None, sdk=SDK, pose_source=None)
+
+
+def test_deploy_cli_needs_an_interface(export, capsys):
+    from pipeline.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["deploy", str(export), "--psi", "1.4"])
+    assert exit_.value.code == 2 and "--interface" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ over DDS with the sim bridge
+def _bridge(export, domain, *extra):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "sim-bridge", str(export), "--psi", "1.4",
+                             "--interface", "lo", "--domain", str(domain), *extra], env=env, cwd=REPO,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_one_episode_on_the_bridge_matches_sim2sim(export, tmp_path):
+    """Lockstep bridge at 500 Hz physics and motor law; sim2sim steps the export's 200 Hz: the same
+    end and success, the landing (pelvis at the episode's end) within LANDING_TOLERANCE_M."""
+    from pipeline.deploy.controller import run_deploy
+    from pipeline.export.sim2sim import EpisodeJudge, Sim2Sim
+
+    landing_tolerance_m = 0.05
+    domain, trace = _domain(), tmp_path / "trace.npz"
+    bridge = _bridge(export, domain, "--lockstep", "--trace", str(trace))
+    try:
+        report = run_deploy(export, 1.4, interface="lo", domain_id=domain, go_flag=True, lockstep=True,
+                            odometry_topic="rt/adamimic/odometry",
+                            safety=SafetyConfig(damping_s=0.0, ramp_s=0.0, hold_after_s=0.04))
+    finally:
+        bridge.send_signal(signal.SIGTERM)
+        bridge.wait(timeout=20)
+    assert report.end == "done", report.message
+    run = np.load(trace)
+    # the state after policy step k is the one the bridge published after that step's command
+    rows = [int(np.flatnonzero(run["tick"] == tick + 20)[0]) for tick in report.state_ticks]
+    reference = Sim2Sim(export).run_episode(1.4)
+    runner = Sim2Sim(export)
+    judge = EpisodeJudge(runner.meta, 1.4, runner.keyframe_targets(1.4))
+    from pipeline.export.policy_step import projected_gravity
+
+    ends = [judge.update(phase, run["site_xpos"][r], projected_gravity(run["qpos"][r, 3:7]), run["qpos"][r, 2])
+            for phase, r in zip(report.phases, rows)]
+    assert ends[-1] == reference.end == "done" and all(e is None for e in ends[:-1])
+    assert len(report.phases) == reference.steps
+    assert judge.success == reference.success
+    landing = run["qpos"][rows[-1], :3]
+    assert np.linalg.norm(landing - np.asarray(reference.final_base_pos)) < landing_tolerance_m
+
+
+def test_killed_bridge_mid_episode_sends_the_controller_to_damping(export):
+    from pipeline.deploy.controller import run_deploy
+
+    domain = _domain()
+    bridge = _bridge(export, domain)  # real time, like the robot
+    killed_at = []
+
+    def kill_mid_episode(controller):
+        if len(controller.report.phases) == 5 and not killed_at:
+            bridge.send_signal(signal.SIGKILL)
+            killed_at.append(time.monotonic())
+        assert controller.tick < 500, "the controller never noticed"
+
+    try:
+        report = run_deploy(export, 1.4, interface="lo", domain_id=domain, go_flag=True,
+                            odometry_topic="rt/adamimic/odometry", on_tick=kill_mid_episode,
+                            safety=SafetyConfig(damping_s=0.1, ramp_s=0.2, hold_after_s=0.1, state_timeout_s=0.3,
+                                                first_state_timeout_s=20))
+    finally:
+        bridge.kill()
+        bridge.wait(timeout=20)
+    assert killed_at, report.message
+    assert report.end == "fault" and "LowState stopped" in report.message and report.exit_code == 3
+    assert report.modes[-1][1] == "damping" and report.last_kp == [0.0] * NUM_MOTORS
+    assert time.monotonic() - killed_at[0] < 2.0
+
+
+def test_dry_run_publishes_nothing(export):
+    from pipeline.deploy.controller import run_deploy
+    from pipeline.deploy.transport import LOW_CMD_TOPIC, LOW_STATE_TOPIC, DdsLink
+
+    domain = _domain()
+    link = DdsLink(domain, "lo")
+    state_writer = link.writer(LOW_STATE_TOPIC, SDK.LowState)
+    commands = link.reader(LOW_CMD_TOPIC, SDK.LowCmd, keep_last=100)
+    meta = json.loads((export / "policy.json").read_text())
+    robot = FakeRobot(meta)
+    robot.set_q(np.asarray(meta["default_joint_pos"]))
+    stop = threading.Event()
+
+    def publish_states():  # a robot standing still, 100 Hz
+        while not stop.is_set():
+            robot.state.tick += 10
+            robot.state.crc = low_state_crc(robot.state)
+            state_writer.write(robot.state)
+            time.sleep(0.01)
+
+    thread = threading.Thread(target=publish_states, daemon=True)
+    thread.start()
+    try:
+        report = run_deploy(export, 1.4, interface="lo", domain_id=domain, dry_run=True, go_flag=True,
+                            pose=lambda: (np.zeros(3), 0.0), on_tick=_stop_after(10),
+                            safety=SafetyConfig(damping_s=0.04, ramp_s=0.1, state_timeout_s=0.5))
+    finally:
+        stop.set()
+        thread.join()
+    assert len(report.phases) >= 3 and report.commands_written > 0 and "none published" in report.message
+    time.sleep(0.2)
+    assert commands.take(N=100) == []
+
+
+def test_key_go_counts_only_an_enter_pressed_once_armed():
+    import io
+
+    from pipeline.deploy.controller import KeyGo
+
+    read, write = os.pipe()
+    go = KeyGo(io.TextIOWrapper(os.fdopen(read, "rb")))
+    os.write(write, b"\n")  # pressed during the ramp: discarded
+    time.sleep(0.1)
+    go.arm()
+    time.sleep(0.05)
+    assert not go()
+    os.write(write, b"\n")
+    _wait(go)
+    os.close(write)
