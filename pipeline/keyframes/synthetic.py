@@ -84,7 +84,7 @@ class EstimatorNoise:
     reference: per-frame jitter drawn at the video's rate and interpolated to the reference's (so it is
     correlated over neighbouring frames), feet that slide while they stand, a floor that is not level."""
 
-    jitter_m: float = 0.012  # standard deviation of each foot's and the root's position, per axis
+    jitter_m: float = 0.01  # standard deviation of each foot's position per axis (half of its variance the root's)
     jitter_rad: float = 0.03  # of each foot's pitch
     video_fps: float = 30.0
     slide_m_s: float = 0.15  # a standing foot creeps forward this fast
@@ -97,6 +97,7 @@ CLEAN = EstimatorNoise(jitter_m=0.0, jitter_rad=0.0, slide_m_s=0.0, slope=0.0)
 HEEL_STRIKE_RAD = 0.3  # toe up at a touch-down, rolled flat over the first third of the stance
 TOE_OFF_RAD = 0.45  # heel up at a lift-off, from the last third of the stance
 SWING_LIFT_M = 0.12  # how high a swinging foot rises above the straight line between its supports
+SWING_END_SPEED = 0.6  # m/s: at least this fast up from a lift-off and down onto a touch-down
 STANCE_DIP_M = 0.07  # the root is this much lower than standing while the legs reach forward and back
 
 
@@ -255,7 +256,8 @@ def synthetic_hop_step_jump(supports: list[Support] | None = None, noise: Estima
             inside = (t > t0 + 1e-9) & (t < t1 - 1e-9)
             s = (t[inside] - t0) / (t1 - t0)
             ankle[inside, foot] = a0 + _ramp(s)[:, None] * (a1 - a0)
-            ankle[inside, foot, 2] = a0[2] + s * (a1[2] - a0[2]) + SWING_LIFT_M * np.sin(np.pi * s)
+            lift = max(SWING_LIFT_M, SWING_END_SPEED * (t1 - t0) / np.pi)  # a long swing comes down as fast
+            ankle[inside, foot, 2] = a0[2] + s * (a1[2] - a0[2]) + lift * np.sin(np.pi * s)
             pitch[inside, foot] = p0 + s * (p1 - p0)
 
     # The root: over the middle of each support, lower while one leg stands alone; a parabola in flight.
@@ -287,9 +289,9 @@ def synthetic_hop_step_jump(supports: list[Support] | None = None, noise: Estima
         height[a:b] += dip[a:b] - dip_ends  # keep the flight's own arc, not the dip schedule's
     root = np.column_stack([along, np.zeros(n), height])
 
-    common = video_noise((3,), noise.jitter_m)
+    common = video_noise((3,), noise.jitter_m / np.sqrt(2.0))  # the whole body's, and each foot's own
     root_noisy = root + common
-    ankle_noisy = ankle + common[:, None] + video_noise((2, 3), noise.jitter_m)
+    ankle_noisy = ankle + common[:, None] + video_noise((2, 3), noise.jitter_m / np.sqrt(2.0))
     pitch_noisy = pitch + video_noise((2,), noise.jitter_rad)
     joints = np.tile(cfg.default_joint_pos, (n, 1))
     joints, worst = _leg_ik(kin, root_noisy, ankle_noisy, pitch_noisy, joints)
