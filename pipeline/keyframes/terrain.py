@@ -7,7 +7,7 @@
 
 Geometry comes from the motion once (`resolve_terrain`, stored in `TrackingData.terrain`): along the
 edit direction, each gap runs from the takeoff toes (+ margin) to the landing heels (− margin) of the
-feet on the ground there (a hop's swinging foot is ahead of its take-off: it edges nothing), and
+feet that stand in the stances around it (a hop's swinging foot, ahead of its take-off, edges nothing), and
 each moves with its keyframes as ψ changes, so the edited reference always lands just beyond the
 gap. A box between two gaps moves with its keyframes without changing length, so for the paper's
 tasks `terrain_layout` changes positions only; sizes are reported too (the contract), constant.
@@ -59,11 +59,30 @@ def resolve_terrain(task: TaskConfig, motion, keyframes) -> dict:
     height, _ = foot_height_and_speed(motion)
     contact = detect_foot_contacts(motion)
 
-    def standing(frame: int) -> np.ndarray:
-        """The soles of the feet on the ground at `frame` (the lowest foot if none is): a hop's or a
-        step's swinging foot is ahead of the take-off and behind the landing, and edges none."""
-        feet = np.flatnonzero(contact[frame])
-        return soles[frame, feet if feet.size else [int(np.argmin(height[frame]))]]
+    flight_frames = [(a, b) for a, b in getattr(keyframes, "flights", ())] or [
+        (int(f), int(f)) for f in keyframes.frames]
+
+    def stance_edge(frame: int, side: str) -> float:
+        """Along the axis: the toes furthest forward of the feet that last stood in the stance ending at
+        take-off `frame` ("takeoff"), or the heels furthest back of the feet that first stand in the
+        stance starting at landing `frame` ("landing"), each foot where it stood or stands. A hop's
+        swinging foot, ahead of the take-off and behind the landing, edges nothing; a foot coming
+        down after the other edges where it lands."""
+        if side == "takeoff":
+            start = max([b for _, b in flight_frames if b <= frame], default=0)
+            span = range(frame, start - 1, -1)
+        else:
+            stop = min([a for a, _ in flight_frames if a >= frame], default=motion.num_frames - 1)
+            span = range(frame, stop + 1)
+        edges = []
+        for foot in range(2):
+            stood = next((f for f in span if contact[f, foot]), None)
+            if stood is not None:
+                edges.append(soles[stood, foot].max() if side == "takeoff" else soles[stood, foot].min())
+        if not edges:  # nothing found on the ground there (flights listed by hand): the lowest foot
+            foot = int(np.argmin(height[frame]))
+            edges.append(soles[frame, foot].max() if side == "takeoff" else soles[frame, foot].min())
+        return float(max(edges) if side == "takeoff" else min(edges))
 
     shares = _edit_shares(keyframes)
     frames, labels = keyframes.frames, keyframes.labels
@@ -79,7 +98,7 @@ def resolve_terrain(task: TaskConfig, motion, keyframes) -> dict:
                 raise PipelineInputError(src, fld, f"a gap needs a takeoff keyframe before the edited "
                                                    f"keyframe at {keyframes.times[k]:.2f} s; none found")
             t = before[-1]
-            takeoff, landing = float(standing(frames[t]).max()), float(standing(frames[k]).min())
+            takeoff, landing = stance_edge(frames[t], "takeoff"), stance_edge(frames[k], "landing")
             if landing < takeoff:
                 raise PipelineInputError(
                     src, fld, f"{task.input}: the gap before {labels[k]} would run backwards: the landing heels "
@@ -94,7 +113,7 @@ def resolve_terrain(task: TaskConfig, motion, keyframes) -> dict:
         steps = []
         for k in edited_idx:
             window = slice(frames[k], min(frames[k] + 4, motion.num_frames))
-            steps.append({"edge": float(standing(frames[k]).min()) - cfg.margin,
+            steps.append({"edge": stance_edge(frames[k], "landing") - cfg.margin,
                           "floor": float(np.median(height[window].min(axis=1))), "share": float(shares[k])})
         anchors["steps"] = steps
         anchors["start_floor"] = float(height[0].min())
