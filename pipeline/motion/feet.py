@@ -28,6 +28,7 @@ EXTEND_SPEED = 3.0  # m/s: while extending a contact (toe-off, heel strike, a re
 HEIGHT_TOL = 0.01  # m: contact while the sole stays this close to the stretch's floor height
 MIN_FLIGHT_S = 0.04  # s with no foot down that make a flight (2 frames at 50 fps: a triple jump's 0.1 s
 # flights lose a frame at either end to a jittery clip's tolerances)
+MIN_SWING_S = 0.05  # a jittery foot off the floor for less than this never left it
 APEX_WINDOW_S = 0.1  # a still stretch with the foot lower than it on both sides within this is in the air
 # A pose estimator's clip (GVHMR and the like: feet jittering by a centimetre from frame to frame).
 NOISE_FLOOR_M = 0.001  # height jitter above this: the clip is smoothed and the tolerances widened
@@ -157,8 +158,9 @@ def contacts_from_points(points: np.ndarray, fps: float, radius: float = 0.0) ->
             # off early), speeds from a local quadratic fit of the points.
             height = median_filter(height, size=(window, 1), mode="nearest")
             points = savgol_filter(points, window, 2, axis=0)
-        # The sole's middle, not its lowest point: which point is lowest flickers with the jitter. A
-        # single frame's speed is mostly noise: the median of its neighbours' is the foot's.
+        # The sole's middle, not its lowest point: which point is lowest flickers with the jitter; along
+        # the floor only (up and down the jitter is as large and the height tells). A single frame's
+        # speed is mostly noise: the median of its neighbours' is the foot's.
         speed = np.linalg.norm(np.gradient(points.mean(axis=2)[..., :2], 1.0 / fps, axis=0), axis=-1)
         speed = median_filter(speed, size=(window, 1), mode="nearest")
     else:
@@ -188,5 +190,11 @@ def contacts_from_points(points: np.ndarray, fps: float, radius: float = 0.0) ->
             # lets in the frames before it: a frame well above the next two is not down yet.
             while jitter and hi - lo > 2 and h[lo] - h[lo + 1:lo + 3].min() > 0.5 * height_tol:
                 lo += 1
-            contact[lo:hi, foot] = True
+            # A jittery still stretch may span a flight straight up (the foot still along the floor):
+            # only its frames at the floor's height are on it.
+            contact[lo:hi, foot] = near[lo:hi] if jitter else True
+        if jitter:  # a frame or two of jitter out of a stance: no foot swings and lands that fast
+            for a, b in runs(~contact[:, foot]):
+                if 0 < a and b < t and b - a < MIN_SWING_S * fps:
+                    contact[a:b, foot] = True
     return contact
