@@ -82,8 +82,8 @@ def task_flights(motion: Motion, task: TaskConfig) -> list[tuple[int, int]]:
             f"{task.input} should hold {kc.flight_count} flight(s) but {len(flights)} were found at {fps:g} fps "
             f"(take-off: the last frame with a foot down, landing: the first frame back): {listed}. Look at the "
             f"retargeted preview and list the {kc.flight_count} flight(s) by hand as [take-off, landing] times in "
-            f"seconds, e.g. `keyframes: {{flights: [{example}]}}`, or set `keyframes.min_flight` (now "
-            f"{kc.min_flight:g} s) to skip shorter ones")
+            f"seconds, e.g. `keyframes: {{flights: [{example}]}}`, or change `keyframes.min_flight` (now "
+            f"{kc.min_flight:g} s: shorter stretches with no foot down are not flights)")
     return flights
 
 

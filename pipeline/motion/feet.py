@@ -31,10 +31,11 @@ MIN_FLIGHT_S = 0.04  # s with no foot down that make a flight (2 frames at 50 fp
 MIN_SWING_S = 0.05  # a jittery foot off the floor for less than this never left it
 APEX_WINDOW_S = 0.1  # a still stretch with the foot lower than it on both sides within this is in the air
 # A pose estimator's clip (GVHMR and the like: feet jittering by a centimetre from frame to frame).
+JITTER_FIT_S = 0.2  # the jitter is what local quadratic fits over this window leave
 NOISE_FLOOR_M = 0.001  # height jitter above this: the clip is smoothed and the tolerances widened
 SMOOTHING_S = 0.1  # quadratic Savitzky-Golay fit over this window
 STILL_SPEED_PER_JITTER = 2.0  # still speed + this x jitter x fps
-HEIGHT_TOL_PER_JITTER = 3.0  # height tolerance + this x jitter
+HEIGHT_TOL_PER_JITTER = 2.0  # height tolerance + this x jitter
 
 
 @lru_cache(maxsize=1)
@@ -117,15 +118,18 @@ def find_flights(contact: np.ndarray, fps: float, min_flight: float = MIN_FLIGHT
     return flights
 
 
-def height_jitter(height: np.ndarray) -> float:
-    """A robust estimate (m) of the frame-to-frame jitter of (T, F) foot heights: the median absolute
-    second difference, which a standing foot (0) or a flying one (g dt², under a millimetre) leaves near
-    zero and an estimator's per-frame noise does not, scaled to a standard deviation (white noise of
-    deviation s has second differences of deviation s√6)."""
-    if len(height) < 3:
+def height_jitter(height: np.ndarray, fps: float) -> float:
+    """A robust estimate (m) of the jitter of (T, F) foot heights: the median absolute deviation from
+    local quadratic fits over JITTER_FIT_S, which a standing foot (0) or a flying one (a parabola) leaves
+    near zero and an estimator's noise does not, as a standard deviation. (Second differences would miss
+    most of it: a clip estimated at 30 fps and resampled to 50 is piecewise linear between its frames.)"""
+    from scipy.signal import savgol_filter
+
+    window = 2 * int(round(0.5 * JITTER_FIT_S * fps)) + 1
+    if len(height) <= window:
         return 0.0
-    second = np.diff(height, 2, axis=0)
-    return float(np.max(1.4826 * np.median(np.abs(second), axis=0)) / np.sqrt(6.0))
+    residual = height - savgol_filter(height, window, 2, axis=0)
+    return float(np.max(1.4826 * np.median(np.abs(residual), axis=0)))
 
 
 def detect_foot_contacts(motion: Motion) -> np.ndarray:
@@ -148,7 +152,7 @@ def contacts_from_points(points: np.ndarray, fps: float, radius: float = 0.0) ->
 
     t, feet = points.shape[:2]
     height, _ = lowest_point_height_and_speed(points, fps, radius)
-    jitter = height_jitter(height)
+    jitter = height_jitter(height, fps)
     if jitter > NOISE_FLOOR_M:
         from scipy.ndimage import median_filter
 
