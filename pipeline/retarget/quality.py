@@ -23,10 +23,12 @@ Definitions (all on the final 50 Hz motion unless said):
                             falls at 9.81, lands earlier and faster than the reference from the same take-off.
   human_jump_scaled         the same flights (the same moments of the clip) measured on the person's pelvis
                             and centre of mass, scaled by the retargeting's scale: what the retargeting kept of
-                            each jump. A person in flight falls at 9.81, so this gravity is about scale x 9.81
-                            (x 1/scale with `time_scale: froude`); the robot's centre of mass over the same
-                            flight need not follow: its mass sits elsewhere (the bundled sample: 8.3 against
-                            the person's 7.5, the legs swinging under it).
+                            each jump. A person in flight falls at 9.81, so this gravity is scale x 9.81
+                            (x 1/scale with `time_scale: froude`) where the person's flight and the
+                            reference's coincide: the bundled sample's 7.5 (its G1 centre of mass 8.3: its
+                            mass sits elsewhere, the legs swinging under it). The shared real clips read
+                            5.7-9.2 (scale 0.73-0.79): estimated clips, and flights the reference's feet
+                            start later than the person's (far jump: 0.1 s, its retargeted feet slide on).
   balance                   can the robot stand where the motion stands still? Over the frames with both
                             feet in contact and the whole-body centre of mass moving slowly (horizontal
                             speed < 0.3 m/s, acceleration < 1 m/s^2): how far its ground projection lies
