@@ -6,6 +6,7 @@ Public names are loaded on first use so that importing `pipeline.keyframes.track
 _EXPORTS = {
     "TaskConfig": "config", "load_tasks": "config", "load_yaml_strict": "config",
     "KeyframeTable": "select", "select_keyframes": "select", "detect_foot_contacts": "select",
+    "find_flights": "select", "task_flights": "select",
     "build_tracking_data": "edit", "sample_psi": "edit", "apply_offsets": "edit",
     "write_tracking_dataset": "datasets", "load_tracking_data": "datasets",
     "terrain_builder": "terrain", "terrain_layout": "terrain", "apply_layout": "terrain",

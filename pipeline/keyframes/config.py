@@ -29,6 +29,7 @@ from pathlib import Path
 import yaml
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.motion.feet import MIN_FLIGHT_S
 from pipeline.priors.push_prior import PushPriorConfig
 
 EDIT_MODES = ("x", "z_apex", "z_hold", "y", "heading")
@@ -73,7 +74,11 @@ class KeyframesConfig:
     events: tuple[str, ...] | None = None  # semantic events to find; None: by the edit (see select)
     overrides: dict[str, float] = field(default_factory=dict)  # label -> time replacing auto one
     extra: tuple[KeyframeSpec, ...] = ()  # added to the automatic ones
-    min_flight: float = 0.08  # seconds without foot contact that count as a flight
+    min_flight: float = MIN_FLIGHT_S  # seconds without foot contact that count as a flight
+    # `flights:` a count (the clip must hold that many flights, else an error lists those found) or the
+    # flights listed by hand as [take-off, landing] times in seconds (then nothing is detected).
+    flight_count: int | None = None
+    flights: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -200,7 +205,7 @@ def _parse_keyframes(name: str, raw) -> KeyframesConfig:
     if isinstance(raw, str):
         raise _err(name, "keyframes", f"must be 'auto', a list of {{time, label}} or a mapping, got {raw!r}")
     _check_keys(name, "keyframes", raw, {"mode", "spacing", "first", "end_margin", "min_gap", "events",
-                                          "overrides", "extra", "min_flight"})
+                                          "overrides", "extra", "min_flight", "flights"})
     if raw.get("mode", "auto") != "auto":
         raise _err(name, "keyframes.mode", f"only 'auto' takes options (a list is explicit), got {raw.get('mode')!r}")
     d = KeyframesConfig()
@@ -218,6 +223,7 @@ def _parse_keyframes(name: str, raw) -> KeyframesConfig:
     extra = raw.get("extra") or []
     if not isinstance(extra, list):
         raise _err(name, "keyframes.extra", "must be a list of {time, label}")
+    flight_count, flights = _parse_flights(name, raw.get("flights"))
     return KeyframesConfig(
         mode="auto",
         spacing=_number(name, "keyframes.spacing", raw.get("spacing", d.spacing), positive=True),
@@ -228,7 +234,37 @@ def _parse_keyframes(name: str, raw) -> KeyframesConfig:
         overrides=parsed_overrides,
         extra=tuple(_keyframe_spec(name, f"keyframes.extra[{i}]", k) for i, k in enumerate(extra)),
         min_flight=_number(name, "keyframes.min_flight", raw.get("min_flight", d.min_flight), positive=True),
+        flight_count=flight_count,
+        flights=flights,
     )
+
+
+def _parse_flights(name: str, raw) -> tuple[int | None, tuple[tuple[float, float], ...]]:
+    """`keyframes.flights`: how many flights the clip holds (a count), or the flights themselves as
+    [take-off, landing] times in seconds, in order (listed by hand: nothing is detected)."""
+    fld = "keyframes.flights"
+    if raw is None:
+        return None, ()
+    if isinstance(raw, int) and not isinstance(raw, bool):
+        if raw < 0:
+            raise _err(name, fld, f"a count of flights must be >= 0, got {raw}")
+        return raw, ()
+    if not isinstance(raw, list) or not raw:
+        raise _err(name, fld, "must be the number of flights the clip holds (e.g. 3) or a non-empty list of "
+                              f"[take-off, landing] times in seconds, got {raw!r}")
+    flights: list[tuple[float, float]] = []
+    for i, pair in enumerate(raw):
+        if not isinstance(pair, (list, tuple)) or len(pair) != 2:
+            raise _err(name, f"{fld}[{i}]", f"must be [take-off, landing] in seconds, got {pair!r}")
+        takeoff = _number(name, f"{fld}[{i}]", pair[0], nonneg=True)
+        landing = _number(name, f"{fld}[{i}]", pair[1], nonneg=True)
+        if landing <= takeoff:
+            raise _err(name, f"{fld}[{i}]", f"the landing ({landing} s) must come after the take-off ({takeoff} s)")
+        if flights and takeoff <= flights[-1][1]:
+            raise _err(name, f"{fld}[{i}]", f"takes off at {takeoff} s, before the flight before it has landed "
+                                            f"({flights[-1][1]} s): list the flights in order, one after the other")
+        flights.append((takeoff, landing))
+    return len(flights), tuple(flights)
 
 
 def _selectors(name: str, fld: str, raw) -> tuple[Selector, ...]:

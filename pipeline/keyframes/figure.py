@@ -1,6 +1,6 @@
 """The "keyframing and editing" picture: the original keyframes' skeletons in grey and the moved ones
-coloured by ψ (blues: easy, reds: hard), in a side view (along the travel vs height) and a top view;
-plus an mp4 of D_rule motions for a few ψ (matplotlib drawing, OpenCV mp4v writer)."""
+coloured by ψ (blues: easy, reds: hard), in a side view (along the travel vs height) and a top view,
+each flight's path drawn over the root's and numbered with its take-off and landing times; plus an mp4 of D_rule motions for a few ψ (matplotlib drawing, OpenCV mp4v writer)."""
 
 from __future__ import annotations
 
@@ -57,8 +57,22 @@ def _draw_skeleton(ax, pos: np.ndarray, index: dict, project, color, alpha=1.0, 
             ax.plot([pa[0], pb[0]], [pa[1], pb[1]], color=color, alpha=alpha, lw=lw, solid_capstyle="round")
 
 
-def keyframe_figure(data: TrackingData, path: str | Path, title: str | None = None) -> None:
-    """Writes the png (atomically)."""
+def _flights_of(data: TrackingData) -> list[tuple[int, int]]:
+    """(take-off, landing) frames paired from the keyframe labels (takeoff_k with landing_k)."""
+    frame_of = dict(zip(data.keyframe_labels, (int(f) for f in data.keyframe_frames)))
+    out = []
+    for label, takeoff in frame_of.items():
+        if label.startswith("takeoff"):
+            landing = frame_of.get("landing" + label[len("takeoff"):])
+            if landing is not None and landing > takeoff:
+                out.append((takeoff, landing))
+    return sorted(out)
+
+
+def keyframe_figure(data: TrackingData, path: str | Path, title: str | None = None,
+                    flights: list[tuple[int, int]] | None = None) -> None:
+    """Writes the png (atomically). `flights`: (take-off, landing) frames (default: from the labels)."""
+    flights = _flights_of(data) if flights is None else [tuple(int(x) for x in f) for f in flights]
     motion = data.motion
     index = {n: i for i, n in enumerate(motion.body_names)}
     travel = _view_axes(data)
@@ -69,6 +83,12 @@ def keyframe_figure(data: TrackingData, path: str | Path, title: str | None = No
     cmaps = {"easy": plt.get_cmap("Blues"), "hard": plt.get_cmap("Reds")}
     for ax, project in ((axes[0], side), (axes[1], top)):
         ax.plot(*np.array([project(p) for p in motion.root_pos]).T, color="0.8", lw=0.8, ls="--")
+        for i, (takeoff, landing) in enumerate(flights):
+            path_xy = np.array([project(p) for p in motion.root_pos[takeoff:landing + 1]])
+            ax.plot(*path_xy.T, color="darkorange", lw=2.5, alpha=0.8, solid_capstyle="round")
+            if project is side:  # numbered above the skeletons, at the flight's middle
+                ax.text(path_xy[:, 0].mean(), 1.02, f"{i + 1}: {takeoff / motion.fps:.2f}-{landing / motion.fps:.2f} s",
+                        transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7, color="darkorange")
         for k, frame in enumerate(data.keyframe_frames):
             _draw_skeleton(ax, motion.body_pos[frame], index, project, "0.55", alpha=0.8)
         for j, (n, group) in enumerate(samples):
@@ -87,13 +107,17 @@ def keyframe_figure(data: TrackingData, path: str | Path, title: str | None = No
     axes[1].set_xlabel("x (m)")
     axes[1].set_ylabel("y (m)")
     handles = [plt.Line2D([], [], color="0.55", label=f"original keyframes (ψ_raw = {data.psi_raw:g})")]
+    if flights:
+        handles.append(plt.Line2D([], [], color="darkorange", lw=2.5, label=f"root in flight ({len(flights)} flights)"
+                                  if len(flights) > 1 else "root in flight"))
     handles += [plt.Line2D([], [], color=cmaps[g](0.7), label=f"{g}: ψ = " + ", ".join(
         f"{data.psi[n]:.2f}" for n, gg in samples if gg == g)) for g in ("easy", "hard")
         if any(gg == g for _, gg in samples)]
     axes[0].legend(handles=handles, loc="upper left", fontsize=8)
     edited = [f"{data.keyframe_frames[k] / motion.fps:.2f}s {data.keyframe_labels[k]}".strip()
               for k in np.flatnonzero(data.edited)]
-    fig.suptitle(title or f"{data.task}: {data.num_keyframes} keyframes, edited {', '.join(edited)}")
+    fig.suptitle(title or f"{data.task}: {data.num_keyframes} keyframes, {len(flights)} flight(s), "
+                 f"edited {', '.join(edited)}")
     fig.tight_layout()
     path = Path(path)
     with atomic_file(path, "wb") as handle:

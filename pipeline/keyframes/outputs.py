@@ -28,7 +28,7 @@ def build_task_outputs(motion: Motion, task: TaskConfig, out_dir: str | Path, nu
     write_tracking_dataset(paths["d_rule"], rule)
     write_text_atomic(paths["keyframes"], json.dumps({"task": task.name, **table.to_dict(), "terrain": edit.terrain},
                                                      indent=1))
-    keyframe_figure(edit, paths["figure"])
+    keyframe_figure(edit, paths["figure"], flights=list(table.flights))
     if video:
         paths["video"] = out_dir / "d_rule.mp4"
         rule_video(rule, paths["video"])
@@ -52,7 +52,7 @@ def paper_task_figures(out_dir: str | Path, shared_dir: str | Path) -> list[Path
         motion, _ = retarget(load_human_motion(clip), RetargetConfig(), progress=False)
         table = select_keyframes(motion, task)
         path = Path(out_dir) / f"keyframes_{name}.png"
-        keyframe_figure(build_tracking_data(motion, task, table, "edit", None, 0), path)
+        keyframe_figure(build_tracking_data(motion, task, table, "edit", None, 0), path, flights=list(table.flights))
         written.append(path)
     return written
 

@@ -4,7 +4,9 @@ Semantic events (beyond the paper, which hand-picks keyframes):
   * foot contacts from the tracked ankle bodies' poses (`motion/feet.py`): the lowest point of each
     foot's sole (the G1 foot capsules placed with the ankle's pose) and that point's speed;
   * takeoff = last frame with a foot in contact before a flight, landing = first frame after it
-    (flight: no foot in contact for at least `min_flight` seconds);
+    (flight: no foot in contact for at least `min_flight` seconds; `motion/feet.py find_flights`), or
+    the flights listed by hand (`keyframes.flights: [[takeoff, landing], ...]` in seconds); a task that
+    declares its number of flights (`keyframes.flights: 3`) stops when another number is found;
   * apex = highest root inside a flight; hit = peak wrist speed.
 Uniform keyframes every `spacing` seconds fill the rest, but never inside a flight: an unedited
 target in mid-air would contradict every edited landing (the paper's far jump has none there).
@@ -18,7 +20,7 @@ import numpy as np
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.keyframes.config import DEFAULT_EDITED, KeyframeSpec, TaskConfig, _selector_hits
-from pipeline.motion.feet import detect_foot_contacts, runs
+from pipeline.motion.feet import detect_foot_contacts, find_flights
 from pipeline.motion.motion import Motion
 
 
@@ -47,27 +49,47 @@ class KeyframeTable:
                              flights=tuple(tuple(f) for f in raw.get("flights", [])))
 
 
-def find_flights(contact: np.ndarray, fps: float, min_flight: float) -> list[tuple[int, int]]:
-    """(takeoff, landing) frames around each stretch with no foot in contact, inside the clip."""
-    airborne = ~contact.any(axis=1)
-    min_len = max(1, int(round(min_flight * fps)))
-    flights = []
-    for a, b in runs(airborne):
-        if a == 0 or b >= len(airborne) or b - a < min_len:
-            continue  # a clip starting or ending in the air has no takeoff/landing there
-        flights.append((a - 1, b))
-    return flights
-
-
 # ------------------------------------------------------------------------------------- events
 def _number(label: str, count: int, i: int) -> str:
     return label if count == 1 else f"{label}_{i + 1}"
 
 
-def find_semantic_keyframes(motion: Motion, events: tuple[str, ...], min_flight: float
-                            ) -> tuple[list[KeyframeSpec], list[tuple[int, int]]]:
-    contact = detect_foot_contacts(motion)
-    flights = find_flights(contact, motion.fps, min_flight)
+def task_flights(motion: Motion, task: TaskConfig) -> list[tuple[int, int]]:
+    """The (take-off, landing) frames of the task's flights on `motion`: listed by hand
+    (`keyframes.flights` as times) or detected (`motion/feet.py`). A task that declares how many
+    flights its clip holds (`keyframes.flights: N`) and is shown another number raises
+    PipelineInputError naming the clip, what was found and how to list them by hand."""
+    kc, fps = task.keyframes, motion.fps
+    src, fld = f"task {task.name}", "keyframes.flights"
+    if kc.flights:
+        flights = []
+        for i, (takeoff, landing) in enumerate(kc.flights):
+            a, b = int(round(takeoff * fps)), int(round(landing * fps))
+            if b > motion.num_frames - 1:
+                raise PipelineInputError(src, f"{fld}[{i}]", f"lands at {landing} s, beyond the end of "
+                                         f"{task.input} ({motion.duration:.2f} s)")
+            if b - a < 1 or (flights and a <= flights[-1][1]):
+                raise PipelineInputError(src, f"{fld}[{i}]", f"[{takeoff}, {landing}] s is not a flight of its own "
+                                         f"at {fps:g} fps (frames {a}-{b})")
+            flights.append((a, b))
+        return flights
+    flights = find_flights(detect_foot_contacts(motion), fps, kc.min_flight)
+    if kc.flight_count is not None and len(flights) != kc.flight_count:
+        listed = ", ".join(f"frames {a}-{b} ({a / fps:.2f}-{b / fps:.2f} s)" for a, b in flights) or "none"
+        example = ", ".join(f"[{a / fps:.2f}, {b / fps:.2f}]" for a, b in flights[:kc.flight_count]) or "[1.20, 1.45]"
+        raise PipelineInputError(
+            src, fld,
+            f"{task.input} should hold {kc.flight_count} flight(s) but {len(flights)} were found at {fps:g} fps "
+            f"(take-off: the last frame with a foot down, landing: the first frame back): {listed}. Look at the "
+            f"retargeted preview and list the {kc.flight_count} flight(s) by hand as [take-off, landing] times in "
+            f"seconds, e.g. `keyframes: {{flights: [{example}]}}`, or change `keyframes.min_flight` (now "
+            f"{kc.min_flight:g} s: shorter stretches with no foot down are not flights)")
+    return flights
+
+
+def find_semantic_keyframes(motion: Motion, events: tuple[str, ...], flights: list[tuple[int, int]]
+                            ) -> list[KeyframeSpec]:
+    """Takeoff, apex and landing of each flight (numbered when there are several), and the hit."""
     found: list[tuple[int, str]] = []
     n = len(flights)
     for i, (takeoff, landing) in enumerate(flights):
@@ -82,8 +104,7 @@ def find_semantic_keyframes(motion: Motion, events: tuple[str, ...], min_flight:
         speed = np.linalg.norm(motion.body_lin_vel[:, wrists], axis=-1).max(axis=1)
         edge = min(3, motion.num_frames // 4)  # finite differences are one-sided at the ends
         found.append((edge + int(np.argmax(speed[edge:motion.num_frames - edge])), "hit"))
-    specs = [KeyframeSpec(float(frame) / motion.fps, label) for frame, label in sorted(found)]
-    return specs, flights
+    return [KeyframeSpec(float(frame) / motion.fps, label) for frame, label in sorted(found)]
 
 
 def _default_events(task: TaskConfig) -> tuple[str, ...]:
@@ -109,7 +130,8 @@ def select_keyframes(motion: Motion, task: TaskConfig) -> KeyframeTable:
         specs = list(kc.listed)
     else:
         events = kc.events if kc.events is not None else _default_events(task)
-        semantic, flights = find_semantic_keyframes(motion, events, kc.min_flight)
+        flights = task_flights(motion, task)
+        semantic = find_semantic_keyframes(motion, events, flights)
         by_label = {s.label: s for s in semantic}
         for label, time in kc.overrides.items():
             by_label[label] = KeyframeSpec(time, label)

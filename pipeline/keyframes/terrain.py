@@ -6,7 +6,8 @@
   * step — boxes `terrain_box_0..G` whose tops change at each edited landing (step up / down).
 
 Geometry comes from the motion once (`resolve_terrain`, stored in `TrackingData.terrain`): along the
-edit direction, each gap runs from the takeoff toes (+ margin) to the landing heels (− margin), and
+edit direction, each gap runs from the takeoff toes (+ margin) to the landing heels (− margin) of the
+feet that stand in the stances around it (a hop's swinging foot, ahead of its take-off, edges nothing), and
 each moves with its keyframes as ψ changes, so the edited reference always lands just beyond the
 gap. A box between two gaps moves with its keyframes without changing length, so for the paper's
 tasks `terrain_layout` changes positions only; sizes are reported too (the contract), constant.
@@ -38,7 +39,7 @@ def _edit_shares(keyframes) -> np.ndarray:
 def resolve_terrain(task: TaskConfig, motion, keyframes) -> dict:
     """The task's terrain declaration with its anchors measured on the motion (JSON-ready)."""
     from pipeline.keyframes.edit import edit_direction
-    from pipeline.motion.feet import foot_height_and_speed, sole_points_world
+    from pipeline.motion.feet import detect_foot_contacts, foot_height_and_speed, sole_points_world
 
     cfg = task.terrain
     out = cfg.to_dict()
@@ -56,6 +57,33 @@ def resolve_terrain(task: TaskConfig, motion, keyframes) -> dict:
     direction = direction / np.linalg.norm(direction)
     soles = sole_points_world(motion)[..., :2] @ direction  # (T, 2, P) along the axis
     height, _ = foot_height_and_speed(motion)
+    contact = detect_foot_contacts(motion)
+
+    flight_frames = [(a, b) for a, b in getattr(keyframes, "flights", ())] or [
+        (int(f), int(f)) for f in keyframes.frames]
+
+    def stance_edge(frame: int, side: str) -> float:
+        """Along the axis: the toes furthest forward of the feet that last stood in the stance ending at
+        take-off `frame` ("takeoff"), or the heels furthest back of the feet that first stand in the
+        stance starting at landing `frame` ("landing"), each foot where it stood or stands. A hop's
+        swinging foot, ahead of the take-off and behind the landing, edges nothing; a foot coming
+        down after the other edges where it lands."""
+        if side == "takeoff":
+            start = max([b for _, b in flight_frames if b <= frame], default=0)
+            span = range(frame, start - 1, -1)
+        else:
+            stop = min([a for a, _ in flight_frames if a >= frame], default=motion.num_frames - 1)
+            span = range(frame, stop + 1)
+        edges = []
+        for foot in range(2):
+            stood = next((f for f in span if contact[f, foot]), None)
+            if stood is not None:
+                edges.append(soles[stood, foot].max() if side == "takeoff" else soles[stood, foot].min())
+        if not edges:  # nothing found on the ground there (flights listed by hand): the lowest foot
+            foot = int(np.argmin(height[frame]))
+            edges.append(soles[frame, foot].max() if side == "takeoff" else soles[frame, foot].min())
+        return float(max(edges) if side == "takeoff" else min(edges))
+
     shares = _edit_shares(keyframes)
     frames, labels = keyframes.frames, keyframes.labels
     edited_idx = np.flatnonzero(keyframes.edited)
@@ -70,19 +98,30 @@ def resolve_terrain(task: TaskConfig, motion, keyframes) -> dict:
                 raise PipelineInputError(src, fld, f"a gap needs a takeoff keyframe before the edited "
                                                    f"keyframe at {keyframes.times[k]:.2f} s; none found")
             t = before[-1]
-            gaps.append({"takeoff": float(soles[frames[t]].max()), "landing": float(soles[frames[k]].min()),
+            takeoff, landing = stance_edge(frames[t], "takeoff"), stance_edge(frames[k], "landing")
+            if landing < takeoff:
+                raise PipelineInputError(
+                    src, fld, f"{task.input}: the gap before {labels[k]} would run backwards: the landing heels "
+                    f"({keyframes.times[k]:.2f} s) are {takeoff - landing:.2f} m behind the take-off toes "
+                    f"({labels[t]}, {keyframes.times[t]:.2f} s) along the jump ({landing:.2f} m against "
+                    f"{takeoff:.2f} m): these two keyframes are not one jump forward. Check the flights found "
+                    f"(keyframes.json `flights`) and list them by hand if they are wrong (keyframes.flights)")
+            gaps.append({"takeoff": takeoff, "landing": landing,
                          "takeoff_share": float(shares[t]), "landing_share": float(shares[k])})
         anchors["gaps"] = gaps
     else:
         steps = []
         for k in edited_idx:
             window = slice(frames[k], min(frames[k] + 4, motion.num_frames))
-            steps.append({"edge": float(soles[frames[k]].min()) - cfg.margin,
+            steps.append({"edge": stance_edge(frames[k], "landing") - cfg.margin,
                           "floor": float(np.median(height[window].min(axis=1))), "share": float(shares[k])})
         anchors["steps"] = steps
         anchors["start_floor"] = float(height[0].min())
     out["anchors"] = anchors
-    terrain_layout(out, task.psi.raw, source=src)  # unbuildable geometry fails here, before any work
+    # Unbuildable geometry (a gap running backwards, gaps overlapping) fails here, before any work, at
+    # ψ_raw and at both ends of the training range.
+    for psi in (task.psi.raw, min(lo for lo, _ in task.psi.train), max(hi for _, hi in task.psi.train)):
+        terrain_layout(out, psi, source=src)
     return out
 
 
@@ -114,15 +153,19 @@ def _segments(terrain: dict, psi: float, src: str) -> list[tuple[float, float, f
         if not gaps:
             raise PipelineInputError(src, "terrain.anchors.gaps", "a gap terrain needs at least one gap")
         edges = []
-        for g in gaps:
+        for i, g in enumerate(gaps):
+            if g["landing"] < g["takeoff"]:
+                raise PipelineInputError(src, f"terrain.anchors.gaps[{i}]", f"the landing edge ({g['landing']:.2f} m) "
+                                         f"lies behind the take-off edge ({g['takeoff']:.2f} m): a gap cannot run backwards")
             start = g["takeoff"] + g.get("takeoff_share", 0.0) * delta + margin
             end = max(start, g["landing"] + g.get("landing_share", 1.0) * delta - margin)  # ψ small: no gap
             edges.append((start, end))
         segs = [(edges[0][0] - FAR, edges[0][0], 0.0)]
         for (_, prev_end), (start, _) in zip(edges, edges[1:]):
             if start - prev_end <= 0.05:
-                raise PipelineInputError(src, "terrain", f"the ground between two gaps would be "
-                                         f"{start - prev_end:.2f} m long: the takeoff lies before the landing")
+                raise PipelineInputError(src, "terrain", f"at ψ = {psi:g} the ground between two gaps would be "
+                                         f"{start - prev_end:.2f} m long: the next take-off lies before the "
+                                         "last landing (the gaps overlap)")
             segs.append((prev_end, start, 0.0))
         segs.append((edges[-1][1], edges[-1][1] + FAR, 0.0))
         return segs

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.common import quat
+from pipeline.motion.feet import find_flights
 
 # The channels the search moves, each the same offset on both sides of the body.
 CHANNELS = (("left_hip_pitch_joint", "right_hip_pitch_joint"), ("left_knee_joint", "right_knee_joint"),
@@ -218,14 +219,9 @@ class OpenLoopJumps:
         return float(max(0.0, ankle_x.min() + SOLE_X[0] - capture, capture - ankle_x.max() - SOLE_X[1]))
 
     def _measure(self, contact, qpos, qvel, sites, state) -> Jump | None:
-        lift_offs = np.flatnonzero(contact[:-1] & ~contact[1:]) + 1
-        for a in lift_offs:
-            touch = np.flatnonzero(contact[a:])
-            if len(touch) == 0:
-                return None  # still in the air, or fallen on something other than the feet
-            b = a + touch[0]
-            if (b - a) * self.dt < MIN_FLIGHT_S:
-                continue
+        # The first flight that lands (none: still in the air, or fallen on something other than the feet).
+        for takeoff, b in find_flights(contact[:, None], 1.0 / self.dt, MIN_FLIGHT_S)[:1]:
+            a = takeoff + 1  # the first frame in the air
             gravity = quat.inverse_rotate(qpos[b, 3:7], DOWN)
             ankles_x = sites[b, self.ankles, 0]
             rear_ankle_x = float(ankles_x.min())

@@ -5,6 +5,10 @@ must be standing on something (a step or box: a foot in flight is never still fo
 Per contact run the foot gets a pin: a fixed position (flat on its support, scaled elevation) and a
 yaw. Targets between runs are shifted by a correction interpolated between the neighbouring pins,
 so the swing and flight phases (the jump) keep their shape and scaled size.
+
+These contacts say where to pin a foot flat before the IK, not when the body flies: a toe-off or a heel
+strike is left free here. Flights (the keyframes', quality.json's `jump`) come from the retargeted
+reference's own feet, `motion/feet.py`.
 """
 
 from __future__ import annotations
@@ -15,18 +19,12 @@ import numpy as np
 
 from pipeline.common import quat
 from pipeline.human.motion import HumanMotion
+from pipeline.motion.feet import runs
 from pipeline.retarget.config import ContactConfig
 
 FEET = (("left_ankle", "left_foot"), ("right_ankle", "right_foot"))  # (ankle, toe-base) SMPL joints
 RAMP_FRAMES = 3  # source frames over which a foot eases into / out of its flat pinned pose
 STILL_S = 0.3  # s; a foot this long without moving is supported, whatever its height
-
-
-def runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[start, stop) of each run of True."""
-    padded = np.concatenate([[False], mask, [False]])
-    edges = np.flatnonzero(np.diff(padded.astype(int)))
-    return list(zip(edges[0::2], edges[1::2]))
 
 
 def _clean(mask: np.ndarray, min_frames: int) -> np.ndarray:

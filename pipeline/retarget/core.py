@@ -16,11 +16,13 @@ import numpy as np
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.human.motion import HumanMotion
+from pipeline.motion.feet import detect_foot_contacts, find_flights
 from pipeline.motion.motion import Motion, RobotKinematics
 from pipeline.retarget import contacts as contact_ops
 from pipeline.retarget.config import RetargetConfig
 from pipeline.retarget.ik import make_retargeter
-from pipeline.retarget.quality import GeomHeights, balance_report, foot_skate, joint_report, keypoint_error, torque_report
+from pipeline.retarget.quality import (GeomHeights, balance_report, flight_gravity, flights_report, foot_skate,  # noqa: F401
+                                       joint_report, jump_summary, keypoint_error, torque_report)
 from pipeline.retarget.skeleton import RobotGeometry, body_scale, transfer_skeleton
 from pipeline.robot.g1 import build_model, joint_limits, load_robot_config
 
@@ -91,6 +93,10 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
     feet_z, lowest_z = heights.lowest(out)
     ankles = out.body_pos[:, [k["left_ankle"], k["right_ankle"]]]
     skate_mean, skate_max = foot_skate(ankles, out_contacts)
+    # The flights: the one detector the keyframe stage uses, on the robot's own reference; the human's are
+    # the same moments of the clip, at its frame rate.
+    flights = find_flights(detect_foot_contacts(out), fps_out)
+    human_flights = [(int(round(a * fps_src / fps_out)), int(round(b * fps_src / fps_out))) for a, b in flights]
     float_mm = [float(np.abs(feet_z[out_contacts[:, s], s] - out_support[out_contacts[:, s], s]).max(initial=0.0))
                 for s in range(2)]
     report = {
@@ -112,12 +118,21 @@ def retarget(human: HumanMotion, cfg: RetargetConfig | None = None, fps_out: flo
         "max_contact_foot_float_mm": 1e3 * max(float_mm),
         "contact_fraction": [float(x) for x in out_contacts.mean(axis=0)],
         **joint_report(out, model),
-        "jump": jump_summary(out.root_pos, out_contacts, fps_out, com=heights.center_of_mass(out)),
+        "jump": flights_report(out.root_pos, flights, fps_out, com=heights.center_of_mass(out)),
         "balance": balance_report(out, heights, out_contacts),
         "torque": torque_report(out, model, load_robot_config()),
-        "human_jump_scaled": jump_summary(scale * human.joint_pos[:, 0], contacts, fps_src),
+        "human_jump_scaled": flights_report(scale * human.joint_pos[:, 0], human_flights, fps_src,
+                                            com=scale * _human_center_of_mass(human)),
     }
     return out, report
+
+
+def _human_center_of_mass(human: HumanMotion) -> np.ndarray:
+    """(T, 3) the person's centre of mass (SMPL segment masses)."""
+    from pipeline.human import smpl
+
+    names = smpl.SMPL_JOINT_NAMES
+    return smpl.center_of_mass(human.joint_pos[:, [human.joint_index(n) for n in names]])
 
 
 def _solve(model, cfg: RetargetConfig, human: HumanMotion, names, target_pos, target_quat, pin_alpha,
@@ -169,36 +184,3 @@ def _floor_correction(motion: Motion, heights: GeomHeights, contacts: np.ndarray
         err[t] = np.max(support[t, contacts[t]] - feet_z[t, contacts[t]])  # lowest contact foot on its support
     dz = contact_ops.interpolate_over_gaps(err, any_contact)
     return dz + np.maximum(0.0, -(lowest + dz))
-
-
-def jump_summary(root_pos: np.ndarray, contacts: np.ndarray, fps: float, com: np.ndarray | None = None) -> dict:
-    """The longest flight phase (no foot in contact): horizontal distance of the root from
-    take-off to landing and its peak height above the take-off height. With the centre of mass
-    (T, 3), also the gravity its flight obeys (`flight_gravity`)."""
-    flight = ~contacts.any(axis=1)
-    phases = [(a, b) for a, b in contact_ops.runs(flight) if a > 0 and b < len(flight)]
-    if not phases:
-        summary = {"distance_m": 0.0, "height_m": 0.0, "duration_s": 0.0}
-        return summary if com is None else {**summary, "gravity_m_s2": None}
-    a, b = max(phases, key=lambda ab: ab[1] - ab[0])
-    start, end = root_pos[a - 1], root_pos[b]
-    summary = {
-        "distance_m": float(np.linalg.norm(end[:2] - start[:2])),
-        "height_m": float(root_pos[a - 1 : b + 1, 2].max() - start[2]),
-        "duration_s": float((b - a + 1) / fps),
-    }
-    if com is not None:
-        summary["gravity_m_s2"] = flight_gravity(com[a:b, 2], fps)
-    return summary
-
-
-def flight_gravity(com_z: np.ndarray, fps: float) -> float | None:
-    """The downward acceleration (m/s², positive) of a flight's centre of mass: twice the leading
-    coefficient of a least-squares parabola through its heights. Why it is reported: the retargeting
-    scales the clip's distances to the robot, not its timing, so a flight keeps its duration while its
-    height shrinks, and falls at about scale × 9.81. The robot falls at 9.81: from the reference's
-    take-off it lands earlier, faster and lower than the reference does. None for under 4 frames."""
-    if len(com_z) < 4:
-        return None
-    t = np.arange(len(com_z)) / fps
-    return float(-2.0 * np.polyfit(t, com_z, 2)[0])

@@ -12,12 +12,23 @@ Definitions (all on the final 50 Hz motion unless said):
   max_penetration_mm        deepest point of any robot collision geom below z = 0.
   joint_limit_violations    number of (frame, joint) entries outside the model's joint range.
   max_joint_vel             largest |joint velocity| in rad/s (central differences at 50 Hz).
-  jump                      the longest flight: the root's distance and peak height, its duration, and the
-                            downward acceleration of the robot's centre of mass over it (gravity_m_s2, a
-                            least-squares parabola, retarget/core.py flight_gravity). Retargeting scales
+  jump                      the flights of the robot's reference, found by the keyframe stage's detector
+                            (motion/feet.py: no foot down for at least 0.04 s): how many (flights_found), and
+                            for each (flights, in order) its take-off and landing times, the root's distance
+                            and peak height, its duration, and the downward acceleration of the robot's centre
+                            of mass over it (gravity_m_s2, a least-squares parabola, `flight_gravity`); the
+                            longest one's figures also at the top level. Retargeting scales
                             distances, not time, so a clip's flight falls at about scale x 9.81 on the robot
-                            (the bundled sample 7.7 at scale 0.77; the shared clips 4.8-8.1): the robot, which falls at
-                            9.81, lands earlier and faster than the reference from the same take-off.
+                            (the bundled sample 8.3 at scale 0.77; the shared clips 6.1-9.1): the robot, which
+                            falls at 9.81, lands earlier and faster than the reference from the same take-off.
+  human_jump_scaled         the same flights (the same moments of the clip) measured on the person's pelvis
+                            and centre of mass, scaled by the retargeting's scale: what the retargeting kept of
+                            each jump. A person in flight falls at 9.81, so this gravity is scale x 9.81
+                            (x 1/scale with `time_scale: froude`) where the person's flight and the
+                            reference's coincide: the bundled sample's 7.5 (its G1 centre of mass 8.3: its
+                            mass sits elsewhere, the legs swinging under it). The shared real clips read
+                            5.7-9.2 (scale 0.73-0.79): estimated clips, and flights the reference's feet
+                            start later than the person's (far jump: 0.1 s, its retargeted feet slide on).
   balance                   can the robot stand where the motion stands still? Over the frames with both
                             feet in contact and the whole-body centre of mass moving slowly (horizontal
                             speed < 0.3 m/s, acceleration < 1 m/s^2): how far its ground projection lies
@@ -46,7 +57,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 from scipy.spatial import ConvexHull
 
-from pipeline.motion.feet import detect_foot_contacts
+from pipeline.motion.feet import detect_foot_contacts, find_flights
 from pipeline.motion.motion import Motion
 from pipeline.robot.dynamics import fit_half_window, joint_torques, smoothed_velocity_and_acceleration
 from pipeline.robot.g1 import RobotConfig, joint_limits
@@ -152,6 +163,48 @@ class GeomHeights:
         z[cylinder] -= np.abs(zc) * self.sizes[cylinder, 1] + np.sqrt(np.clip(1 - zc**2, 0, 1)) * self.sizes[cylinder, 0]
         z[box] -= np.sum(np.abs(zrow[box]) * self.sizes[box, :3], axis=1)
         return z
+
+
+def flights_report(root_pos: np.ndarray, flights: list[tuple[int, int]], fps: float,
+                   com: np.ndarray | None = None) -> dict:
+    """quality.json's `jump` (see the module docstring) for the (take-off, landing) frames of each flight:
+    the root's horizontal distance from take-off to landing and its peak height above the take-off
+    height; with the centre of mass (T, 3), also the gravity its flight obeys."""
+    each = []
+    for takeoff, landing in flights:
+        start, end = root_pos[takeoff], root_pos[landing]
+        figures = {"takeoff_s": takeoff / fps, "landing_s": landing / fps,
+                   "distance_m": float(np.linalg.norm(end[:2] - start[:2])),
+                   "height_m": float(root_pos[takeoff:landing + 1, 2].max() - start[2]),
+                   "duration_s": float((landing - takeoff) / fps)}
+        if com is not None:
+            figures["gravity_m_s2"] = flight_gravity(com[takeoff + 1:landing, 2], fps)
+        each.append(figures)
+    if each:
+        longest = dict(max(each, key=lambda f: f["duration_s"]))
+        del longest["takeoff_s"], longest["landing_s"]
+    else:
+        longest = {"distance_m": 0.0, "height_m": 0.0, "duration_s": 0.0}
+        if com is not None:
+            longest["gravity_m_s2"] = None
+    return {"flights_found": len(each), **longest, "flights": each}
+
+
+def jump_summary(root_pos: np.ndarray, contacts: np.ndarray, fps: float, com: np.ndarray | None = None) -> dict:
+    """`flights_report` of the flights in (T, 2) foot contacts (`motion/feet.py find_flights`)."""
+    return flights_report(root_pos, find_flights(contacts, fps), fps, com)
+
+
+def flight_gravity(com_z: np.ndarray, fps: float) -> float | None:
+    """The downward acceleration (m/s², positive) of a flight's centre of mass: twice the leading
+    coefficient of a least-squares parabola through its heights. Why it is reported: the retargeting
+    scales the clip's distances to the robot, not its timing, so a flight keeps its duration while its
+    height shrinks, and falls at about scale × 9.81. The robot falls at 9.81: from the reference's
+    take-off it lands earlier, faster and lower than the reference does. None for under 4 frames."""
+    if len(com_z) < 4:
+        return None
+    t = np.arange(len(com_z)) / fps
+    return float(-2.0 * np.polyfit(t, com_z, 2)[0])
 
 
 def foot_skate(ankle_pos: np.ndarray, contacts: np.ndarray) -> tuple[float, float]:
