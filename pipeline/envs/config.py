@@ -349,6 +349,10 @@ class EnvConfig:
     # to learn to cancel its own actuators. The exported graph adds the offset itself (export/onnx_export.py).
     action_offset: str = "feedforward"
     action_clip: float = 100.0
+    # Physics preset of robots/g1/robot.yaml `physics.presets` (docs/physics.md): "baseline", the reference
+    # every published figure was measured with, or "fast" (10 ms timestep, 2 substeps; the outer two
+    # capsules of each foot collide), about twice the env steps per second.
+    physics: str = "baseline"
     physics_threads: int = 2
     torch_threads: int = 1  # 0: leave torch's setting alone; small per-step ops prefer 1 beside physics
     # torch.compile the step's rewards, terminations and observations into fused kernels. For GPUs,
@@ -458,6 +462,12 @@ class EnvConfig:
             bad("terminations.max_tilt", "must be > 0")
         if self.terminations.base_height_margin < 0:
             bad("terminations.base_height_margin", "must be >= 0")
+        from pipeline.robot.g1 import load_robot_config
+
+        presets = load_robot_config().physics_presets
+        if self.physics not in presets:
+            bad("physics", f"unknown physics preset {self.physics!r} (robots/g1/robot.yaml physics.presets: "
+                f"{', '.join(presets)})")
         if self.physics_threads < 1:
             bad("physics_threads", "must be >= 1")
         if self.torch_threads < 0:
