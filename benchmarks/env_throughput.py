@@ -14,8 +14,8 @@ sides are measured interleaved in short alternating blocks and each side's time 
 
 Two envs run side by side, the same actions and seeds: one on the physics preset `--physics` (default
 "fast") and one on "baseline", the settings every earlier figure was measured with; their env steps/s
-give speedup_vs_baseline. For each, where a substep goes: µs per substep of the replayed physics, and
-the contacts and constraint rows (nefc) at the states the env's physics calls started from.
+give speedup_vs_baseline. For each, where a substep goes, at the states the env's physics calls started
+from: CPU µs of one mj_step, with and without contacts, and the contacts and constraint rows (nefc).
 
 It also counts the torch operators one env step dispatches outside the physics. On a GPU each one
 that is not a view is a kernel launch with its host cost, and that count, not the worlds, sets the
@@ -169,19 +169,33 @@ def operators_per_step(env, actions) -> tuple[float, float]:
     return sum(counter.counts.values()) / len(actions), counter.kernels() / len(actions)
 
 
-def contacts_and_rows(model: mujoco.MjModel, calls, max_states: int = 512) -> tuple[float, float]:
-    """Mean contacts and constraint rows over the states the recorded physics calls started from (at
-    most `max_states` of them, spread over the calls), each on its world's own model."""
+def substep_cost(model: mujoco.MjModel, calls, max_states: int = 512) -> dict[str, float]:
+    """Where one substep goes, at the states the recorded physics calls started from (at most
+    `max_states`, spread over the calls), each on its world's own model: CPU µs of one mj_step (this
+    thread's time, so other load on the cores barely moves it), the same with contacts switched off (the
+    rest is what contacts cost: collision, their constraint rows, the solver), contacts and constraint rows."""
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
     data = mujoco.MjData(model)
-    picks = [(models[w], state0[w]) for models, state0, _, _ in calls for w in range(len(models))]
+    picks = [(models[w], state0[w], ctrl[w, 0]) for models, state0, ctrl, _ in calls for w in range(len(models))]
     picks = picks[:: max(1, len(picks) // max_states)]
     ncon = nefc = 0
-    for world_model, state in picks:
-        mujoco.mj_setState(world_model, data, state, spec)
-        mujoco.mj_forward(world_model, data)
-        ncon, nefc = ncon + data.ncon, nefc + data.nefc
-    return ncon / len(picks), nefc / len(picks)
+    seconds = {"with": 0.0, "without": 0.0}
+    for world_model, state, ctrl in picks:
+        for contacts in ("with", "without"):
+            flags = world_model.opt.disableflags
+            if contacts == "without":
+                world_model.opt.disableflags = flags | mujoco.mjtDisableBit.mjDSBL_CONTACT.value
+            mujoco.mj_setState(world_model, data, state, spec)
+            data.ctrl[:] = ctrl
+            start = time.thread_time()
+            mujoco.mj_step(world_model, data)
+            seconds[contacts] += time.thread_time() - start
+            world_model.opt.disableflags = flags
+            if contacts == "with":
+                ncon, nefc = ncon + data.ncon, nefc + data.nefc
+    n = len(picks)
+    return {"us_step": 1e6 * seconds["with"] / n, "us_step_no_contacts": 1e6 * seconds["without"] / n,
+            "ncon": ncon / n, "nefc": nefc / n}
 
 
 class PresetRun:
@@ -223,10 +237,8 @@ class PresetRun:
         self.calls.extend(self.recorder.calls[:: max(1, BLOCK // 2)])  # a few per block for the contact counts
 
     def report(self, steps: int) -> dict:
-        ncon, nefc = contacts_and_rows(self.model, self.calls)
-        substeps = steps * self.env.decimation
         return {"env": steps / self.env_time, "raw": steps / self.replay_time, "standing": steps / self.standing_time,
-                "us_per_substep": 1e6 * self.replay_time * THREADS / substeps, "ncon": ncon, "nefc": nefc}
+                **substep_cost(self.model, self.calls)}
 
 
 def main() -> None:
@@ -256,8 +268,9 @@ def main() -> None:
         phys = runs[name].env.robot.physics(name)
         print(f"physics {name}: timestep {phys.timestep * 1e3:g} ms x {runs[name].env.decimation} substeps, "
               f"foot capsules {list(phys.foot_capsules)}, collisions {phys.collisions}: "
-              f"{rep['us_per_substep']:.1f} us per substep (wall x threads), {rep['ncon']:.1f} contacts and "
-              f"{rep['nefc']:.1f} constraint rows per state; env {rep['env']:.0f} steps/s, raw {rep['raw']:.0f}, "
+              f"mj_step {rep['us_step']:.0f} us CPU ({rep['us_step_no_contacts']:.0f} without contacts), "
+              f"{rep['ncon']:.1f} contacts and {rep['nefc']:.1f} constraint rows per substep; "
+              f"env {rep['env']:.0f} steps/s, raw {rep['raw']:.0f}, "
               f"raw standing on the shared model {rep['standing']:.0f} (env/standing={rep['env'] / rep['standing']:.3f})")
     print("raw is the env's own physics replayed (same per-world models, states, controls)")
     operators, kernels = operators_per_step(env, actions)
