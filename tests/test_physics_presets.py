@@ -157,6 +157,7 @@ def test_unknown_preset_is_named_error():
 
 @pytest.mark.parametrize("edit, bad, field", [
     ("timestep: 0.005", "timestep: -1", "physics.presets.baseline.timestep"),
+    ("timestep: 0.005", "timestep: 0.003", "physics.presets.baseline.timestep"),  # 0.02 s is no whole number of it
     ("cone: pyramidal", "cone: round", "physics.presets.baseline.cone"),
     ("foot_capsules: [1, 2, 3, 4, 5, 6, 7]", "foot_capsules: [0, 9]", "physics.presets.baseline.foot_capsules"),
     ("default: baseline", "default: turbo", "physics.default"),

@@ -87,10 +87,6 @@ class PhysicsConfig:
         spec.option.integrator = INTEGRATORS[self.integrator]
         spec.option.cone = CONES[self.cone]
 
-    def to_dict(self) -> dict:
-        return {"timestep": self.timestep, "integrator": self.integrator, "cone": self.cone,
-                "collisions": self.collisions, "foot_capsules": list(self.foot_capsules)}
-
 
 @dataclass(frozen=True)
 class RobotConfig:
@@ -185,10 +181,15 @@ def _motor_table(raw: dict) -> dict[str, dict[str, float]]:
     return table
 
 
-def _physics_presets(raw, source: str) -> tuple[dict[str, PhysicsConfig], str]:
+def _physics_presets(raw, control_dt: float, source: str) -> tuple[dict[str, PhysicsConfig], str]:
     if not isinstance(raw, dict) or not isinstance(raw.get("presets"), dict) or not raw["presets"]:
         raise PipelineInputError(source, "physics.presets", "must map preset names to their settings")
     presets = {name: PhysicsConfig.from_dict(name, spec, source) for name, spec in raw["presets"].items()}
+    for name, preset in presets.items():  # the policy's rate is fixed: a whole number of substeps per control step
+        ratio = control_dt / preset.timestep
+        if abs(ratio - round(ratio)) > 1e-6:
+            raise PipelineInputError(source, f"physics.presets.{name}.timestep",
+                                     f"{preset.timestep} s does not divide control_dt {control_dt} s")
     default = raw.get("default")
     if default not in presets:
         raise PipelineInputError(source, "physics.default", f"must name one of {', '.join(presets)}, got {default!r}")
@@ -198,7 +199,7 @@ def _physics_presets(raw, source: str) -> tuple[dict[str, PhysicsConfig], str]:
 @lru_cache(maxsize=4)
 def load_robot_config(path: str | Path = ROBOT_DIR / "robot.yaml") -> RobotConfig:
     raw = yaml.safe_load(Path(path).read_text())
-    presets, default_physics = _physics_presets(raw.get("physics"), str(path))
+    presets, default_physics = _physics_presets(raw.get("physics"), float(raw["control_dt"]), str(path))
     motors = _motor_table(raw["motors"])
     omega = 2.0 * math.pi * float(raw["natural_frequency_hz"])
     zeta = float(raw["damping_ratio"])
