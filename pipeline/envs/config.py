@@ -350,9 +350,9 @@ class EnvConfig:
     action_offset: str = "feedforward"
     action_clip: float = 100.0
     # Physics preset of robots/g1/robot.yaml `physics.presets` (docs/physics.md): "baseline", the reference
-    # every published figure was measured with; "light" (3 of the 7 capsules under each foot collide), about
-    # 1.4 times the env steps per second and as close to baseline as baseline's own timestep error; "fast"
-    # (also 10 ms substeps, 2 per control step), about 2.6 times, but policies' falls after a landing came
+    # every published figure was measured with; "light" (3 of the 7 capsules under each foot collide), 1.3-1.7
+    # times the env steps per second and as close to baseline as baseline's own timestep error; "fast"
+    # (also 10 ms substeps, 2 per control step), 2.1-2.8 times, but policies' falls after a landing came
     # out differently under it: for quick runs, not for figures compared with baseline's.
     physics: str = "baseline"
     physics_threads: int = 2
