@@ -295,6 +295,18 @@ def main() -> None:
     print(f"[learn_cpu] {args.motion} frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()} "
           f"{list(keyframes.labels)}; prepared in {time.time() - t0:.0f} s", flush=True)
 
+    # Sized by time (0 iterations train until the limit, and the curricula follow the clock) or by count.
+    overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": args.iterations,
+                                      "time_limit_stage1_s": 0.0 if args.iterations else args.minutes * 60.0,
+                                      "save_interval": args.snapshot_every if args.snapshots else 50,
+                                      "keep_checkpoints": max(2, args.snapshots)}}
+    if args.envs:
+        overrides["train"]["ppo"] = {"num_envs": args.envs}
+    for item in args.set:
+        set_dotted(overrides, item)
+    cfg = TrainConfig.from_dict(overrides["train"])
+    env_cfg = EnvConfig.from_dict(overrides["env"])
+
     out = args.out or Path(tempfile.mkdtemp(prefix="learn_cpu_"))
     if args.push_prior or args.push_prior_from:
         from pipeline.priors.push_prior import PushPriorConfig, build_push_prior, load_push_prior, write_push_prior
@@ -320,7 +332,8 @@ def main() -> None:
             if args.push_prior_reference_posture:
                 search["reference_posture"] = True
             prior_cfg = PushPriorConfig(enabled=True, **search)
-            data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True))
+            data.push_prior = build_push_prior(data, prior_cfg, log=lambda line: print(line, flush=True),
+                                               physics=env_cfg.physics)  # searched on the env's physics
             write_push_prior(out / "push_prior", data.push_prior)
             print(f"[learn_cpu] push prior searched in {(time.time() - t_prior) / 60:.1f} minutes (not counted in "
                   f"training's), saved to {out / 'push_prior'}", flush=True)
@@ -328,17 +341,6 @@ def main() -> None:
         print(f"[learn_cpu] push prior: ψ {prior.summary['psi_reached']:.2f} m at w = 1; w(ψ) anchors "
               + ", ".join(f"{p:.2f}:{w:.3f}" for p, w in zip(prior.psi_anchors, prior.weight_anchors)), flush=True)
 
-    # Sized by time (0 iterations train until the limit, and the curricula follow the clock) or by count.
-    overrides = {"env": {}, "train": {"profile": "cpu", "variant": "adamimic_stage1", "iterations_stage1": args.iterations,
-                                      "time_limit_stage1_s": 0.0 if args.iterations else args.minutes * 60.0,
-                                      "save_interval": args.snapshot_every if args.snapshots else 50,
-                                      "keep_checkpoints": max(2, args.snapshots)}}
-    if args.envs:
-        overrides["train"]["ppo"] = {"num_envs": args.envs}
-    for item in args.set:
-        set_dotted(overrides, item)
-    cfg = TrainConfig.from_dict(overrides["train"])
-    env_cfg = EnvConfig.from_dict(overrides["env"])
     torch.set_num_threads(2)
     if args.stage1_from is not None:
         stage1_policy = args.stage1_from / "policy"

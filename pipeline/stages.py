@@ -64,7 +64,8 @@ def run_push_prior(params: PipelineConfig, args) -> None:
     prior = None
     if task.push_prior.enabled:
         data = load_tracking_data(paths.keyframes_dir(args.task) / "d_edit")
-        prior = build_push_prior(data, task.push_prior, log=lambda line: print(line, flush=True))
+        prior = build_push_prior(data, task.push_prior, log=lambda line: print(line, flush=True),
+                                 physics=params.env.physics)
     with atomic_dir(paths.push_prior_dir(args.task)) as staging:
         write_push_prior(staging, prior)
     print(f"{args.task}: " + ("no push prior (tasks.<name>.push_prior.enabled is false)" if prior is None else

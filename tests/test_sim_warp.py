@@ -48,6 +48,20 @@ def _start_states(model, rng):
 
 
 def test_cpu_and_warp_trajectories_agree(model, warp_cpu):
+    _check_cpu_and_warp_agree(model, warp_cpu)
+
+
+def test_cpu_and_warp_agree_on_the_fast_physics_preset():
+    """Both backends take the same compiled model, so a physics preset (robots/g1/robot.yaml) reaches both:
+    10 ms substeps, two per control step, three capsules per foot."""
+    fast = build_sim_model(physics="fast")
+    warp = make_backend("warp", fast, NUM_WORLDS, device="cpu", allow_warp_on_cpu=True)
+    assert warp.decimation == 2 and warp.model.opt.timestep == 0.01
+    _check_cpu_and_warp_agree(fast, warp)
+    warp.close()
+
+
+def _check_cpu_and_warp_agree(model, warp_cpu):
     rng = np.random.default_rng(3)
     cpu = make_backend("cpu", model, NUM_WORLDS)
     qpos, qvel = _start_states(model, rng)

@@ -349,6 +349,12 @@ class EnvConfig:
     # to learn to cancel its own actuators. The exported graph adds the offset itself (export/onnx_export.py).
     action_offset: str = "feedforward"
     action_clip: float = 100.0
+    # Physics preset of robots/g1/robot.yaml `physics.presets` (docs/physics.md): "baseline", the reference
+    # every published figure was measured with; "light" (3 of the 7 capsules under each foot collide), 1.3-1.7
+    # times the env steps per second and as close to baseline as baseline's own timestep error; "fast"
+    # (also 10 ms substeps, 2 per control step), 2.1-2.8 times, but policies' falls after a landing came
+    # out differently under it: for quick runs, not for figures compared with baseline's.
+    physics: str = "baseline"
     physics_threads: int = 2
     torch_threads: int = 1  # 0: leave torch's setting alone; small per-step ops prefer 1 beside physics
     # torch.compile the step's rewards, terminations and observations into fused kernels. For GPUs,
@@ -458,6 +464,12 @@ class EnvConfig:
             bad("terminations.max_tilt", "must be > 0")
         if self.terminations.base_height_margin < 0:
             bad("terminations.base_height_margin", "must be >= 0")
+        from pipeline.robot.g1 import load_robot_config
+
+        presets = load_robot_config().physics_presets
+        if self.physics not in presets:
+            bad("physics", f"unknown physics preset {self.physics!r} (robots/g1/robot.yaml physics.presets: "
+                f"{', '.join(presets)})")
         if self.physics_threads < 1:
             bad("physics_threads", "must be >= 1")
         if self.torch_threads < 0:

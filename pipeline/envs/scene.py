@@ -19,13 +19,17 @@ from pipeline.keyframes.tracking_data import TrackingData
 Layout = Callable[[float], dict]
 
 
-def build_scene(data: TrackingData, task, source: str) -> tuple[mujoco.MjModel, Layout | None]:
-    """The compiled scene for `data`'s terrain and its ψ -> layout function (None on flat ground)."""
+def build_scene(data: TrackingData, task, source: str, physics: str | None = None) -> tuple[mujoco.MjModel, Layout | None]:
+    """The compiled scene for `data`'s terrain under physics preset `physics` (robot.yaml; None: its
+    default) and its ψ -> layout function (None on flat ground)."""
+    from pipeline.robot.g1 import load_robot_config
+
+    preset = load_robot_config().physics(physics, source, "env.physics")  # a bad name is the env config's fault
     builder, layout = _terrain_hooks(data, task, source)
     try:
         from pipeline.sim.model import build_sim_model
 
-        model = build_sim_model(terrain=builder)
+        model = build_sim_model(terrain=builder, physics=preset)
     except Exception as exc:  # a terrain that does not compile is the task's fault
         raise PipelineInputError(source, "terrain", f"cannot build the scene: {exc}") from exc
     return model, layout

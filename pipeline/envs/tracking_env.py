@@ -62,7 +62,7 @@ class TrackingEnv:
         self.num_envs = n = int(num_envs)
         self._check_data(data, source)
 
-        model, terrain_layout = build_scene(data, task, source)
+        model, terrain_layout = build_scene(data, task, source, cfg.physics)
         self.backend = make_physics(backend, model, n, cfg.physics_threads, device, source)
         self.model = self.backend.model  # the compiled scene with the backend's sensors
         self.decimation = int(self.backend.decimation)

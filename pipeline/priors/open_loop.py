@@ -102,16 +102,16 @@ class OpenLoopJumps:
     frame it ends on; past the motion's end, at its last frame. Each channel's curve is linear between
     `knots` evenly spaced knots over the window."""
 
-    def __init__(self, motion, robot, start: int = 0, steps: int = 70, knots: int = KNOTS):
+    def __init__(self, motion, robot, start: int = 0, steps: int = 70, knots: int = KNOTS, physics: str | None = None):
         import mujoco
 
         from pipeline.envs.feedforward import zero_action_targets
         from pipeline.sim.model import build_sim_model, sensor_layout
 
         self.mujoco = mujoco
-        self.model = build_sim_model()
+        self.model = build_sim_model(physics=physics)  # the env's physics preset (None: robot.yaml's default)
         self.layout = sensor_layout(self.model)
-        self.substeps = robot.decimation
+        self.substeps = int(round(robot.control_dt / self.model.opt.timestep))
         self.dt = self.model.opt.timestep
         self.segment = segment = motion.reorder_joints(robot.joint_names)  # qpos in the model's joint order
         self.start, self.steps = int(start), int(steps)

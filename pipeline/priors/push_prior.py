@@ -115,9 +115,9 @@ def monotone_anchors(psi: np.ndarray, weight: np.ndarray, min_step: float = 0.01
     return np.array(kept_psi), np.array(kept_w)
 
 
-def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushPrior:
+def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print, physics: str | None = None) -> PushPrior:
     """Searches the push for `data` (D_edit of a task whose edit moves the landing along x) and measures w(ψ).
-    `log`: where progress lines go (None: nowhere)."""
+    `log`: where progress lines go (None: nowhere). `physics`: the env's physics preset (None: robot.yaml's default)."""
     from pipeline.priors.open_loop import OpenLoopJumps, cross_entropy_search
     from pipeline.robot.g1 import load_robot_config
 
@@ -128,7 +128,7 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print) -> PushP
     fps = motion.fps
     start = max(0, takeoff - int(round(LEAD_S * fps)))
     steps = min(motion.num_frames - 1 - start, landing - start + int(round(AFTER_LANDING_S * fps)))
-    jumps = OpenLoopJumps(motion, robot, start, steps, knots=cfg.knots)
+    jumps = OpenLoopJumps(motion, robot, start, steps, knots=cfg.knots, physics=physics)
     reference_landing_x = float(jumps.segment.body_pos[landing, jumps.ankles, 0].min())
 
     def psi_of(jump) -> float:  # the edit moves the landing by ψ − ψ_raw, so the rear ankle lands that much further

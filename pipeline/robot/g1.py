@@ -6,7 +6,10 @@ What this adds to the upstream MJCF, as AdaMimic uses the robot:
     motors' effort limits, joint armature = J;
   * the 17 tracked bodies as sites `track_<name>`;
   * robot-vs-world collisions only (no self collisions), feet as capsules with condim 3;
-  * the ground from a terrain hook (flat plane by default).
+  * the ground from a terrain hook (flat plane by default);
+  * the physics settings of one named preset of robot.yaml `physics:` (timestep, integrator, friction
+    cone, which geoms collide): `baseline`, the reference every figure was measured with, or a cheaper
+    one (docs/physics.md).
 """
 
 from __future__ import annotations
@@ -22,10 +25,67 @@ import mujoco
 import numpy as np
 import yaml
 
+from pipeline.common.errors import PipelineInputError
 from pipeline.robot.assets import ROBOT_DIR, mjcf_path
 
 TerrainBuilder = Callable[[mujoco.MjSpec], None]
 TRACK_SITE_PREFIX = "track_"
+ROBOT_YAML = "robots/g1/robot.yaml"
+
+INTEGRATORS = {"implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST, "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
+               "euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4}
+CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}
+# Which robot geoms collide with the world: "all" of its collision geoms, or the "feet" alone (a fallen
+# robot then sinks into the ground until a fall check, which reads the base's pose, ends the episode).
+COLLISION_SETS = ("all", "feet")
+FOOT_CAPSULES = tuple(range(1, 8))  # the MJCF's <side>_foot1..7_collision capsules
+
+
+@dataclass(frozen=True)
+class PhysicsConfig:
+    """One physics preset of robot.yaml `physics.presets`. The control rate (control_dt) is the
+    robot's and never changes with it: a coarser timestep means fewer substeps per control step."""
+
+    name: str
+    timestep: float
+    integrator: str = "implicitfast"
+    cone: str = "pyramidal"
+    collisions: str = "all"
+    foot_capsules: tuple[int, ...] = FOOT_CAPSULES
+
+    @classmethod
+    def from_dict(cls, name: str, raw, source: str = ROBOT_YAML) -> "PhysicsConfig":
+        where = f"physics.presets.{name}"
+        if not isinstance(raw, dict):
+            raise PipelineInputError(source, where, f"must be a mapping, got {type(raw).__name__}")
+        known = {"timestep", "integrator", "cone", "collisions", "foot_capsules"}
+        unknown = sorted(set(raw) - known)
+        if unknown:
+            raise PipelineInputError(source, f"{where}.{unknown[0]}", f"unknown key (known: {', '.join(sorted(known))})")
+        if "timestep" not in raw:
+            raise PipelineInputError(source, f"{where}.timestep", "missing")
+        timestep = raw["timestep"]
+        if isinstance(timestep, bool) or not isinstance(timestep, (int, float)) or not 0.0 < timestep <= 0.05:
+            raise PipelineInputError(source, f"{where}.timestep", f"must be a number in (0, 0.05] s, got {timestep!r}")
+        choices = {"integrator": tuple(INTEGRATORS), "cone": tuple(CONES), "collisions": COLLISION_SETS}
+        for key, allowed in choices.items():
+            if key in raw and raw[key] not in allowed:
+                raise PipelineInputError(source, f"{where}.{key}", f"must be one of {', '.join(allowed)}, got {raw[key]!r}")
+        capsules = raw.get("foot_capsules", list(FOOT_CAPSULES))
+        if (not isinstance(capsules, list) or not capsules
+                or any(isinstance(c, bool) or c not in FOOT_CAPSULES for c in capsules)
+                or len(set(capsules)) != len(capsules)):
+            raise PipelineInputError(source, f"{where}.foot_capsules",
+                                     f"must be a non-empty list of distinct capsule numbers 1..7, got {capsules!r}")
+        return cls(name=name, timestep=float(timestep), integrator=raw.get("integrator", "implicitfast"),
+                   cone=raw.get("cone", "pyramidal"), collisions=raw.get("collisions", "all"),
+                   foot_capsules=tuple(sorted(int(c) for c in capsules)))
+
+    def apply(self, spec: mujoco.MjSpec) -> None:
+        """Sets the solver options of `spec` (the geoms' collision flags are set in build_spec)."""
+        spec.option.timestep = self.timestep
+        spec.option.integrator = INTEGRATORS[self.integrator]
+        spec.option.cone = CONES[self.cone]
 
 
 @dataclass(frozen=True)
@@ -49,6 +109,18 @@ class RobotConfig:
     natural_frequency_hz: float = 10.0
     damping_ratio: float = 2.0
     motor_of_joint: dict[str, str] = field(default_factory=dict)
+    # robot.yaml `physics`: the named presets and the one used where none is asked for (sim_dt is its timestep)
+    physics_presets: dict[str, PhysicsConfig] = field(default_factory=dict)
+    default_physics: str = "baseline"
+
+    def physics(self, name: str | None = None, source: str = ROBOT_YAML, field_name: str = "physics") -> PhysicsConfig:
+        """The preset `name` (None: the default one); an unknown name is a PipelineInputError
+        naming `source` and `field_name`, the file and key the name came from."""
+        name = self.default_physics if name is None else name
+        if name not in self.physics_presets:
+            raise PipelineInputError(source, field_name, f"unknown physics preset {name!r} "
+                                     f"(robot.yaml physics.presets: {', '.join(self.physics_presets)})")
+        return self.physics_presets[name]
 
     @property
     def num_joints(self) -> int:
@@ -109,9 +181,25 @@ def _motor_table(raw: dict) -> dict[str, dict[str, float]]:
     return table
 
 
+def _physics_presets(raw, control_dt: float, source: str) -> tuple[dict[str, PhysicsConfig], str]:
+    if not isinstance(raw, dict) or not isinstance(raw.get("presets"), dict) or not raw["presets"]:
+        raise PipelineInputError(source, "physics.presets", "must map preset names to their settings")
+    presets = {name: PhysicsConfig.from_dict(name, spec, source) for name, spec in raw["presets"].items()}
+    for name, preset in presets.items():  # the policy's rate is fixed: a whole number of substeps per control step
+        ratio = control_dt / preset.timestep
+        if abs(ratio - round(ratio)) > 1e-6:
+            raise PipelineInputError(source, f"physics.presets.{name}.timestep",
+                                     f"{preset.timestep} s does not divide control_dt {control_dt} s")
+    default = raw.get("default")
+    if default not in presets:
+        raise PipelineInputError(source, "physics.default", f"must name one of {', '.join(presets)}, got {default!r}")
+    return presets, default
+
+
 @lru_cache(maxsize=4)
 def load_robot_config(path: str | Path = ROBOT_DIR / "robot.yaml") -> RobotConfig:
     raw = yaml.safe_load(Path(path).read_text())
+    presets, default_physics = _physics_presets(raw.get("physics"), float(raw["control_dt"]), str(path))
     motors = _motor_table(raw["motors"])
     omega = 2.0 * math.pi * float(raw["natural_frequency_hz"])
     zeta = float(raw["damping_ratio"])
@@ -134,13 +222,15 @@ def load_robot_config(path: str | Path = ROBOT_DIR / "robot.yaml") -> RobotConfi
         tracked_bodies={k: (v["body"], tuple(v["pos"])) for k, v in raw["tracked_bodies"].items()},
         feet=raw["feet"],
         locked_joints=tuple(raw["locked_joints"]),
-        sim_dt=float(raw["sim_dt"]),
+        sim_dt=presets[default_physics].timestep,
         control_dt=float(raw["control_dt"]),
         default_root_height=float(raw["default_root_height"]),
         foot_friction=float(raw["foot_friction"]),
         natural_frequency_hz=float(raw["natural_frequency_hz"]),
         damping_ratio=zeta,
         motor_of_joint=motor_of,
+        physics_presets=presets,
+        default_physics=default_physics,
     )
 
 
@@ -167,19 +257,21 @@ def build_spec(
     terrain: TerrainBuilder | None = None,
     visual: bool = True,
     config: RobotConfig | None = None,
+    physics: PhysicsConfig | str | None = None,
 ) -> mujoco.MjSpec:
-    """The G1 scene as an editable MjSpec. `visual=False` drops meshes (training needs none)."""
+    """The G1 scene as an editable MjSpec. `visual=False` drops meshes (training needs none).
+    `physics`: a preset or its name in robot.yaml (None: the robot's default preset)."""
     cfg = config or load_robot_config()
+    phys = physics if isinstance(physics, PhysicsConfig) else cfg.physics(physics)
     spec = mujoco.MjSpec.from_file(str(mjcf_path()))
-    spec.option.timestep = cfg.sim_dt
-    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    phys.apply(spec)
 
     for sensor in list(spec.sensors):
         spec.delete(sensor)
     for name in cfg.locked_joints:
         spec.delete(spec.joint(name))
 
-    foot_pattern = re.compile(r"^(left|right)_foot[1-7]_collision$")
+    foot_pattern = re.compile(r"^(left|right)_foot([1-7])_collision$")
     for geom in list(spec.geoms):
         if geom.classname.name == "visual" or geom.type == mujoco.mjtGeom.mjGEOM_MESH:
             if not visual:
@@ -188,11 +280,16 @@ def build_spec(
         if geom.name.endswith("_collision"):
             # Collide with the world only: self contacts cost time and the paper does not need them.
             geom.contype, geom.conaffinity = 0, 1
-            if foot_pattern.match(geom.name):
+            foot = foot_pattern.match(geom.name)
+            if foot:
                 geom.condim, geom.priority = 3, 1
                 geom.friction = [cfg.foot_friction, 0.005, 0.0001]
+                collides = int(foot.group(2)) in phys.foot_capsules
             else:
                 geom.condim = 1
+                collides = phys.collisions == "all"
+            if not collides:  # kept for drawing, out of the collision pass
+                geom.conaffinity = 0
     if not visual:
         for mesh in list(spec.meshes):
             spec.delete(mesh)
@@ -223,8 +320,9 @@ def build_spec(
     return spec
 
 
-def build_model(terrain: TerrainBuilder | None = None, visual: bool = False) -> mujoco.MjModel:
-    return build_spec(terrain=terrain, visual=visual).compile()
+def build_model(terrain: TerrainBuilder | None = None, visual: bool = False,
+                physics: PhysicsConfig | str | None = None) -> mujoco.MjModel:
+    return build_spec(terrain=terrain, visual=visual, physics=physics).compile()
 
 
 def default_qpos(cfg: RobotConfig | None = None) -> np.ndarray:

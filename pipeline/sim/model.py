@@ -19,6 +19,7 @@ import numpy as np
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.robot.g1 import (
+    PhysicsConfig,
     RobotConfig,
     TerrainBuilder,
     build_spec,
@@ -52,10 +53,12 @@ def add_sim_sensors(spec: mujoco.MjSpec, config: RobotConfig | None = None) -> m
     return spec
 
 
-def build_sim_model(terrain: TerrainBuilder | None = None, config: RobotConfig | None = None) -> mujoco.MjModel:
-    """The G1 training model (no meshes) with the backends' sensors."""
+def build_sim_model(terrain: TerrainBuilder | None = None, config: RobotConfig | None = None,
+                    physics: PhysicsConfig | str | None = None) -> mujoco.MjModel:
+    """The G1 training model (no meshes) with the backends' sensors, under physics preset `physics`
+    (a name in robot.yaml; None: its default). Both backends take this one model."""
     cfg = config or load_robot_config()
-    return add_sim_sensors(build_spec(terrain=terrain, visual=False, config=cfg), cfg).compile()
+    return add_sim_sensors(build_spec(terrain=terrain, visual=False, config=cfg, physics=physics), cfg).compile()
 
 
 def sim_model_from(model_or_spec: mujoco.MjModel | mujoco.MjSpec) -> mujoco.MjModel:
