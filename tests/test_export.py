@@ -10,7 +10,7 @@ from torch import nn
 from pipeline.common.errors import PipelineInputError
 from pipeline.export.metadata import build_metadata, observation_layout
 from pipeline.export.onnx_export import DeployedPolicy, export_folder, parity, read_onnx_metadata
-from pipeline.export.sim2sim import PsiOutOfRangeWarning, Sim2Sim, load_exported, run_sim2sim
+from pipeline.export.sim2sim import PsiOutOfRangeWarning, Sim2Sim, build_scene, load_exported, run_sim2sim
 from pipeline.keyframes.tracking_data import TrackingData
 from pipeline.motion.motion import RobotKinematics
 from pipeline.robot.g1 import default_qpos, load_robot_config
@@ -144,7 +144,18 @@ def test_export_variant_from_a_real_policy_folder(tmp_path):
     assert sorted(p.name for p in result.folder.iterdir()) == ["config.json", "model.safetensors",
                                                                "policy.json", "policy.onnx"]
     assert Sim2Sim(result.folder).run_episode(1.4, max_steps=3).steps >= 1
-    term = json.loads(result.metadata.read_text())["terminations"]
+    written = json.loads(result.metadata.read_text())
+    assert written["physics"] == "baseline" and written["sim_dt"] == cfg.physics("baseline").timestep
+    fast = export_variant(task="far_jump", variant="adamimic", data=data, policy_dir=tmp_path / "final",
+                          out_dir=tmp_path / "export_fast", env_cfg=EnvConfig(physics="fast"))
+    fast_meta = json.loads(fast.metadata.read_text())
+    assert fast_meta["physics"] == "fast" and fast_meta["sim_dt"] == cfg.physics("fast").timestep
+    runner = Sim2Sim(fast.folder)  # replays the preset it trained on: its timestep and substeps
+    assert runner.decimation == 2  # 10 ms steps in a 20 ms control step
+    assert build_scene(fast_meta, 1.4).opt.timestep == cfg.physics("fast").timestep
+    with pytest.raises(PipelineInputError, match="policy.json: physics: unknown physics preset 'warp9'"):
+        build_scene({**fast_meta, "physics": "warp9"}, 1.4)
+    term = written["terminations"]
     assert term["relative_to_reference"] and term["base_height_applies"] and term["base_height_margin"] == 0.25
     with pytest.raises(PipelineInputError, match="task"):
         export_variant(task="tennis_hit", variant="adamimic", data=data, policy_dir=tmp_path / "final",

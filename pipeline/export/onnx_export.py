@@ -249,6 +249,9 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
     metadata = build_metadata(task=task, variant=variant, robot=robot, data=data, obs_layout=layout,
                               terminations=terminations, terrain=terrain, action_offset=meta["action_offset"])
     metadata["policy_stage"] = meta.get("stage")
+    if env_cfg is not None:  # the physics preset it trained on, so sim2sim and play replay that one
+        metadata["physics"] = env_cfg.physics
+        metadata["sim_dt"] = robot.physics(env_cfg.physics).timestep
     reference = None
     if meta["action_offset"] != "default":  # the table policy.json records (build_metadata)
         reference = ReferenceOffset.for_layout(metadata["reference"]["joint_target"], metadata["phase"]["rate"], layout,

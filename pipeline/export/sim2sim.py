@@ -122,9 +122,11 @@ def _terrain_adder(meta: dict, psi: float) -> Callable[[mujoco.MjSpec], None]:
 
 def build_scene(meta: dict, psi: float, visual: bool = False) -> mujoco.MjModel:
     """The G1 scene at this ψ, actuator gains set from the metadata (what the robot would run)."""
-    from pipeline.robot.g1 import build_spec
+    from pipeline.robot.g1 import build_spec, load_robot_config
 
-    spec = build_spec(terrain=_terrain_adder(meta, psi), visual=visual)
+    # Exports older than the physics presets name none: the robot's default preset
+    physics = load_robot_config().physics(meta.get("physics"), source="policy.json", field_name="physics")
+    spec = build_spec(terrain=_terrain_adder(meta, psi), visual=visual, physics=physics)
     if visual:
         spec.visual.quality.offsamples = 0  # multisampling costs more than it shows at 640x480
     model = spec.compile()
