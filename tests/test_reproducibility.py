@@ -109,3 +109,24 @@ def test_pin_leaves_a_cpu_without_avx2_and_the_opt_out_alone(tmp_path):
     environ = {OPT_OUT: "1"}
     assert pin_cpu_kernels(environ, modern) is False and environ == {OPT_OUT: "1"}
     assert cpu_has_avx2_fma(tmp_path / "missing") is False
+
+
+def test_npz_bytes_follow_from_the_arrays_alone(tmp_path):
+    import io
+    import zipfile
+
+    import numpy as np
+
+    from pipeline.common.npz import savez_reproducible
+
+    arrays = {"joint_offsets": np.linspace(0.0, 1.0, 12).reshape(3, 4), "joint_names": np.array(["a", "bc"])}
+    first, second = io.BytesIO(), io.BytesIO()
+    savez_reproducible(first, **arrays)
+    savez_reproducible(second, **arrays)
+    assert first.getvalue() == second.getvalue()
+    assert {m.date_time for m in zipfile.ZipFile(first).infolist()} == {(1980, 1, 1, 0, 0, 0)}
+    (tmp_path / "x.npz").write_bytes(first.getvalue())
+    with np.load(tmp_path / "x.npz") as loaded:
+        assert sorted(loaded.files) == sorted(arrays)
+        for key, value in arrays.items():
+            assert np.array_equal(loaded[key], value) and loaded[key].dtype == value.dtype
