@@ -144,6 +144,7 @@ def test_new_task_in_params_runs_through_dvc_repro(tmp_path):
 
     def add_task(raw):
         _tiny(raw)
+        raw["extra_seeds"] = []  # one seed here: test_extra_seeds_train_evaluate_and_reach_the_report covers more
         raw["tasks"]["my_far_jump"] = {"extends": "far_jump", "input": str(SHARED_FAR_JUMP), "num_samples": 4}
 
     _write_params(repo / "params.yaml", add_task)
