@@ -19,4 +19,11 @@ def _headless_gl() -> str:
 # Headless by default (stages render previews and videos); MuJoCo reads this when first imported.
 os.environ.setdefault("MUJOCO_GL", _headless_gl())
 
+# The same CPU kernels on every x86-64 machine (AVX2 + FMA), so the same inputs give the same bytes:
+# set before numpy and torch load (every stage script imports `pipeline` first). Why and how:
+# pipeline/common/cpu_kernels.py.
+from pipeline.common.cpu_kernels import pin_cpu_kernels  # noqa: E402
+
+pin_cpu_kernels()
+
 REPO_ROOT = Path(__file__).resolve().parent.parent

@@ -21,6 +21,7 @@ def stage_parser(description: str) -> argparse.ArgumentParser:
     parser.add_argument("--task", help="task name, a key of `tasks:` in params.yaml")
     parser.add_argument("--variant", help="training variant (see `variants:` in params.yaml)")
     parser.add_argument("--resume", action="store_true", help="continue training from the latest checkpoint")
+    parser.add_argument("--seed", type=int, help="one of `extra_seeds` in params.yaml (train_seed, evaluate_seed)")
     return parser
 
 

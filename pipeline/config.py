@@ -16,7 +16,7 @@ from pipeline.common.errors import PipelineInputError
 
 PROFILES = ("cpu", "gpu")
 PAPER_TASKS = Path(__file__).resolve().parent / "keyframes" / "paper_tasks.yaml"
-TOP_LEVEL_KEYS = ("profile", "variants", "retarget", "tasks", "env", "train", "evaluate")
+TOP_LEVEL_KEYS = ("profile", "variants", "extra_seeds", "retarget", "tasks", "env", "train", "evaluate")
 
 
 @dataclass
@@ -30,6 +30,14 @@ class PipelineConfig:
     train: Any  # pipeline.rl.config.TrainConfig (profile already applied)
     evaluate: Any  # pipeline.evaluation.config.EvalConfig
     raw: dict
+    # Training seeds beside train.seed: each trains stage 1 + 2 and is evaluated like the main policy,
+    # and the report gives success over all of them (mean, spread).
+    extra_seeds: tuple[int, ...] = ()
+
+    @property
+    def seeds(self) -> tuple[int, ...]:
+        """Every training seed the report aggregates: train.seed first, then extra_seeds."""
+        return (self.train.seed, *self.extra_seeds)
 
 
 def _section(raw: dict, key: str, path: Path) -> dict:
@@ -104,6 +112,7 @@ def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
     tasks_raw = _section(raw, "tasks", path)
     if not tasks_raw:
         raise PipelineInputError(path, "tasks", "declare at least one task")
+    train = TrainConfig.from_dict({**_section(raw, "train", path), "profile": profile}, where="train")
     return PipelineConfig(
         path=path,
         profile=profile,
@@ -111,7 +120,23 @@ def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
         retarget=RetargetConfig.from_dict(_section(raw, "retarget", path), where="retarget"),
         tasks=load_tasks(resolve_task_templates(tasks_raw, path)),
         env=EnvConfig.from_dict(_section(raw, "env", path), where="env"),
-        train=TrainConfig.from_dict({**_section(raw, "train", path), "profile": profile}, where="train"),
+        train=train,
         evaluate=EvalConfig.from_dict(_section(raw, "evaluate", path), where="evaluate"),
         raw=raw,
+        extra_seeds=_extra_seeds(raw.get("extra_seeds", []), train.seed, path),
     )
+
+
+def _extra_seeds(value, main_seed: int, path: Path) -> tuple[int, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise PipelineInputError(path, "extra_seeds", f"must be a list of seeds, got {type(value).__name__}")
+    for i, seed in enumerate(value):
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise PipelineInputError(path, f"extra_seeds[{i}]", f"must be an integer >= 0, got {seed!r}")
+        if seed == main_seed:
+            raise PipelineInputError(path, f"extra_seeds[{i}]", f"is train.seed ({main_seed}), which trains already")
+    if len(set(value)) != len(value):
+        raise PipelineInputError(path, "extra_seeds", "lists a seed twice")
+    return tuple(value)

@@ -25,6 +25,15 @@ def model_dir(task: str, variant: str) -> Path:
     return Path("models") / task / variant
 
 
+def seed_model_dir(task: str, variant: str, seed: int) -> Path:
+    """An extra training seed's run (`extra_seeds` in params.yaml): its stage1/ and final/."""
+    return model_dir(task, variant) / "seeds" / str(seed)
+
+
+def seed_results_dir(task: str, variant: str, seed: int) -> Path:
+    return results_dir(task, variant) / "seeds" / str(seed)
+
+
 def results_dir(task: str, variant: str | None = None) -> Path:
     base = Path("results") / task
     return base / variant if variant else base

@@ -107,24 +107,50 @@ def run_train_stage1(params: PipelineConfig, args) -> None:
 
 def run_train_stage2(params: PipelineConfig, args) -> None:
     """Stage 2: phase and tracking adapters on the frozen stage-1 policy (if the variant has one)."""
+    model_dir = paths.model_dir(args.task, args.variant)
+    metrics = _train_stage2_into(params, args, _train_config(params, args.variant), model_dir, resume=args.resume)
+    print(json.dumps(metrics, indent=1, default=float))
+
+
+def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resume: bool = False) -> dict:
+    """Stage 2 on `model_dir`/stage1/policy into `model_dir`/final."""
     from pipeline.rl.trainer import train_stage2
 
-    cfg = _train_config(params, args.variant)
-    model_dir = paths.model_dir(args.task, args.variant)
     final = model_dir / "final"
     if cfg.variant_spec.stage2:
         data = _tracking_data(params, args.task, args.variant)
-        metrics = train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy",
-                               resume=args.resume)
-    else:
-        # One-stage variants: their final policy is the stage-1 policy, copied so later stages
-        # read every variant from the same place.
-        with atomic_dir(final) as staging:
-            shutil.copytree(model_dir / "stage1" / "policy", staging / "policy")
-            metrics = json.loads((model_dir / "stage1" / "metrics.json").read_text())
-            (staging / "metrics.json").write_text(json.dumps(metrics, indent=1))
-            (staging / "NOTE.md").write_text(f"Variant `{args.variant}` has no stage 2: this is its stage-1 policy.\n")
-    print(json.dumps(metrics, indent=1, default=float))
+        return train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy", resume=resume)
+    # One-stage variants: their final policy is the stage-1 policy, copied so later stages
+    # read every variant from the same place.
+    with atomic_dir(final) as staging:
+        shutil.copytree(model_dir / "stage1" / "policy", staging / "policy")
+        metrics = json.loads((model_dir / "stage1" / "metrics.json").read_text())
+        (staging / "metrics.json").write_text(json.dumps(metrics, indent=1))
+        (staging / "NOTE.md").write_text(f"Variant `{args.variant}` has no stage 2: this is its stage-1 policy.\n")
+    return metrics
+
+
+def _extra_seed(params: PipelineConfig, args) -> int:
+    from pipeline.common.errors import PipelineInputError
+
+    if args.seed is None or args.seed not in params.extra_seeds:
+        raise PipelineInputError(params.path, "extra_seeds",
+                                 f"--seed {args.seed} is not one of the extra seeds {list(params.extra_seeds)}")
+    return args.seed
+
+
+def run_train_seed(params: PipelineConfig, args) -> None:
+    """Stage 1 and stage 2 again with another training seed (one of `extra_seeds`), everything else as
+    the main run: the report's spread over seeds."""
+    from pipeline.rl.trainer import train_stage1
+
+    seed = _extra_seed(params, args)
+    cfg = dataclasses.replace(_train_config(params, args.variant), seed=seed)
+    model_dir = paths.seed_model_dir(args.task, args.variant, seed)
+    data = _tracking_data(params, args.task, args.variant)
+    stage1 = train_stage1(data, params.env, cfg, model_dir / "stage1", resume=args.resume)
+    final = _train_stage2_into(params, args, cfg, model_dir, resume=args.resume)
+    print(json.dumps({"seed": seed, "stage1": stage1, "final": final}, indent=1, default=float))
 
 
 def run_evaluate(params: PipelineConfig, args) -> None:
@@ -132,10 +158,14 @@ def run_evaluate(params: PipelineConfig, args) -> None:
     from pipeline.evaluation.run import evaluate_variant
 
     data = _tracking_data(params, args.task, "adamimic")  # evaluation always targets D_edit keyframes
+    model_dir, out_dir = paths.model_dir(args.task, args.variant), paths.results_dir(args.task, args.variant)
+    if args.seed is not None:  # an extra seed's policy (evaluate_seed): its metrics, no videos
+        seed = _extra_seed(params, args)
+        model_dir = paths.seed_model_dir(args.task, args.variant, seed)
+        out_dir = paths.seed_results_dir(args.task, args.variant, seed)
     doc = evaluate_variant(task=args.task, variant=args.variant, data=data, env_cfg=params.env,
-                           eval_cfg=params.evaluate,
-                           policy_dir=paths.model_dir(args.task, args.variant) / "final" / "policy",
-                           out_dir=paths.results_dir(args.task, args.variant))
+                           eval_cfg=params.evaluate, policy_dir=model_dir / "final" / "policy",
+                           out_dir=out_dir, videos=args.seed is None)
     print(json.dumps(doc, indent=1, default=float)[:4000])
 
 
@@ -144,7 +174,7 @@ def run_report(params: PipelineConfig, args) -> None:
     from pipeline.evaluation.report import write_report
 
     table = write_report(args.task, list(params.variants), results_dir=paths.results_dir(args.task),
-                         out_dir=paths.report_dir(args.task))
+                         out_dir=paths.report_dir(args.task), seeds=params.seeds)
     print(Path(table).read_text())
 
 

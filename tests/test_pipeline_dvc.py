@@ -8,6 +8,7 @@ checks the plumbing (every stage of a new task runs and is cached), not the lear
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -143,6 +144,7 @@ def test_new_task_in_params_runs_through_dvc_repro(tmp_path):
 
     def add_task(raw):
         _tiny(raw)
+        raw["extra_seeds"] = []  # one seed here: test_extra_seeds_train_evaluate_and_reach_the_report covers more
         raw["tasks"]["my_far_jump"] = {"extends": "far_jump", "input": str(SHARED_FAR_JUMP), "num_samples": 4}
 
     _write_params(repo / "params.yaml", add_task)
@@ -191,3 +193,48 @@ def test_new_task_in_params_runs_through_dvc_repro(tmp_path):
     _dvc(repo, "pull", "--with-deps", *targets)
     assert policy.read_bytes() == original
     assert (repo / "data/keyframes/my_far_jump/d_edit/meta/info.json").is_file()
+
+
+@pytest.mark.slow
+def test_extra_seeds_train_evaluate_and_reach_the_report(tmp_path):
+    """`extra_seeds` adds train_seed/evaluate_seed stages per seed beside the main run, whose paths stay
+    as they were, and the report aggregates success over every seed (bundled sample, tiny sizes)."""
+    repo = tmp_path / "repo"
+    _copy_repo(repo)
+
+    def tiny_seeds(raw, seeds=(3,)):
+        _tiny(raw)
+        raw["tasks"]["far_jump_sample"]["num_samples"] = 4
+        raw["extra_seeds"] = list(seeds)
+
+    _write_params(repo / "params.yaml", tiny_seeds)
+    target = "report@far_jump_sample"
+    log = _dvc(repo, "repro", target)
+    for stage in ("train_stage1@far_jump_sample-adamimic", "evaluate@far_jump_sample-adamimic",
+                  "train_seed@far_jump_sample-adamimic-3", "evaluate_seed@far_jump_sample-adamimic-3", target):
+        assert f"Running stage '{stage}'" in log, stage
+    for artifact in ("models/far_jump_sample/adamimic/final/policy/model.safetensors",
+                     "results/far_jump_sample/adamimic/metrics.json",
+                     "models/far_jump_sample/adamimic/seeds/3/stage1/policy/model.safetensors",
+                     "models/far_jump_sample/adamimic/seeds/3/final/policy/model.safetensors",
+                     "results/far_jump_sample/adamimic/seeds/3/metrics.json"):
+        assert (repo / artifact).is_file(), artifact
+    assert not list((repo / "results/far_jump_sample/adamimic/seeds/3/media").glob("*.mp4"))  # no videos
+    base = repo / "models/far_jump_sample/adamimic"  # another seed trained another policy
+    assert (base / "stage1/policy/model.safetensors").read_bytes() != (base / "seeds/3/stage1/policy/model.safetensors").read_bytes()
+
+    summary = json.loads((repo / "reports/far_jump_sample/seeds.json").read_text())["adamimic"]
+    assert summary["seeds"] == [0, 3]
+    main = json.loads((repo / "results/far_jump_sample/adamimic/metrics.json").read_text())
+    seed3 = json.loads((repo / "results/far_jump_sample/adamimic/seeds/3/metrics.json").read_text())
+    assert summary["ranges"]["overall"]["success_per_seed"] == {
+        "0": main["ranges"]["overall"]["success"]["mean"], "3": seed3["ranges"]["overall"]["success"]["mean"]}
+    assert "## Success over training seeds (2: 0, 3)" in (repo / "reports/far_jump_sample/table.md").read_text()
+    assert "Running stage" not in _dvc(repo, "repro", target)
+
+    # One more seed: only its stages and the report are out of date, not the main run's training.
+    _write_params(repo / "params.yaml", lambda raw: tiny_seeds(raw, seeds=(3, 5)))
+    status = _dvc(repo, "status", "--with-deps", target)
+    assert "train_seed@far_jump_sample-adamimic-5" in status and target in status
+    assert "train_stage1@" not in status and "train_seed@far_jump_sample-adamimic-3" not in status
+

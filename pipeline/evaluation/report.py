@@ -191,21 +191,87 @@ def endings_line(doc: dict) -> str:
     return line
 
 
-def write_report(task: str, variants: list[str], results_dir: str | Path, out_dir: str | Path) -> Path:
-    """reports/<task>/: table.md over the variants evaluated, per-ψ figure of all variants."""
+def seed_summary(docs_by_seed: dict[int, dict]) -> dict:
+    """Success over training seeds, per range: each seed's success (its metrics' mean over evaluation
+    runs), their mean, sample std (ddof 1; null for one seed), min and max. From {seed: metrics json}."""
+    seeds = list(docs_by_seed)
+    ranges = [g for g in RANGE_ORDER if all(g in d["ranges"] for d in docs_by_seed.values())]
+    out: dict = {"seeds": seeds, "ranges": {}}
+    for g in ranges:
+        values = np.array([docs_by_seed[s]["ranges"][g]["success"]["mean"] for s in seeds], dtype=np.float64)
+        out["ranges"][g] = {
+            "success_per_seed": {str(s): float(v) for s, v in zip(seeds, values)},
+            "success_mean": float(values.mean()),
+            "success_std": float(values.std(ddof=1)) if len(values) > 1 else None,
+            "success_min": float(values.min()),
+            "success_max": float(values.max()),
+        }
+    return out
+
+
+def seeds_table(summaries: dict[str, dict]) -> str:
+    """Markdown: success (%) per training seed and over them, one row per variant, from seed_summary."""
+    if not summaries:
+        return ""
+    seeds = next(iter(summaries.values()))["seeds"]
+    groups = [g for g in RANGE_ORDER if any(g in s["ranges"] for s in summaries.values())]
+    lines = [f"\n## Success over training seeds ({len(seeds)}: {', '.join(map(str, seeds))})\n",
+             "Each seed trains stage 1 + 2 from scratch with everything else equal, and is evaluated as above. "
+             "The table above is the first seed's policy alone; how far it moves from seed to seed is here: "
+             "mean ± sample std over seeds [min–max], then each seed's success (%).\n",
+             "| Method | " + " | ".join(f"{g} Succ. over seeds" for g in groups) + " | per seed (" +
+             " / ".join(groups) + ") |",
+             "|---|" + "---|" * (len(groups) + 1)]
+    for variant, summary in summaries.items():
+        cells = []
+        for g in groups:
+            r = summary["ranges"].get(g)
+            if r is None:
+                cells.append("–")
+                continue
+            std = "–" if r["success_std"] is None else f"{r['success_std']:.1f}"
+            cells.append(f"{r['success_mean']:.1f} ± {std} [{r['success_min']:.1f}–{r['success_max']:.1f}]")
+        per_seed = "; ".join(f"seed {s}: " + " / ".join(f"{summary['ranges'][g]['success_per_seed'][str(s)]:.1f}"
+                                                      for g in groups if g in summary["ranges"])
+                             for s in summary["seeds"])
+        lines.append(f"| {variant} | " + " | ".join(cells) + f" | {per_seed} |")
+    return "\n".join(lines) + "\n"
+
+
+def _load_metrics(path: Path, what: str) -> dict:
+    if not path.is_file():
+        raise PipelineInputError(path, None, f"no evaluation for {what}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise PipelineInputError(path, None, f"malformed JSON: {err}") from None
+
+
+def write_report(task: str, variants: list[str], results_dir: str | Path, out_dir: str | Path,
+                 seeds: tuple[int, ...] | list[int] = ()) -> Path:
+    """reports/<task>/: table.md over the variants evaluated, per-ψ figure of all variants, and
+    seeds.json: success over the training `seeds` (the first is the main run's train.seed, in
+    results/<task>/<variant>/; the others in results/<task>/<variant>/seeds/<seed>/)."""
     results_dir, out_dir = Path(results_dir), Path(out_dir)
-    docs, rows, ranges = {}, {}, {}
+    docs, rows, ranges, summaries = {}, {}, {}, {}
     for variant in variants:
-        path = results_dir / variant / "metrics.json"
-        if not path.is_file():
-            raise PipelineInputError(path, None, f"no evaluation for variant {variant!r} (run the evaluate stage)")
-        docs[variant] = json.loads(path.read_text())
+        docs[variant] = _load_metrics(results_dir / variant / "metrics.json",
+                                      f"variant {variant!r} (run the evaluate stage)")
         ranges = docs[variant].get("psi_ranges", ranges)
         per_psi = results_dir / variant / "per_psi.json"
         if per_psi.is_file():
             rows[variant] = json.loads(per_psi.read_text())
+        if seeds:
+            by_seed = {seeds[0]: docs[variant]}
+            for seed in seeds[1:]:
+                by_seed[seed] = _load_metrics(results_dir / variant / "seeds" / str(seed) / "metrics.json",
+                                              f"variant {variant!r} at training seed {seed} (run evaluate_seed)")
+            summaries[variant] = seed_summary(by_seed)
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out_dir / "table.md", f"# {task}\n\n" + results_table(docs))
+    table = f"# {task}\n\n" + results_table(docs) + (seeds_table(summaries) if len(seeds) > 1 else "")
+    write_text_atomic(out_dir / "table.md", table)
+    if summaries:
+        write_text_atomic(out_dir / "seeds.json", json.dumps(summaries, indent=1))
     if rows:
         plot_per_psi(rows, ranges, out_dir / "per_psi.png")
     return out_dir / "table.md"

@@ -39,6 +39,7 @@ import numpy as np
 
 from pipeline.common.atomic import atomic_file, write_text_atomic
 from pipeline.common.errors import PipelineInputError
+from pipeline.common.npz import savez_reproducible
 
 LEAD_S = 0.5          # the window starts this long before the take-off (learn_cpu's segment does too)
 AFTER_LANDING_S = 0.6  # and ends this long after the reference's landing
@@ -171,15 +172,17 @@ def build_push_prior(data, cfg: PushPriorConfig, robot=None, log=print, physics:
         "touchdown_frame": touch,
         "psi_raw": float(data.psi_raw), "psi_reached": psi_of(jump), "jump": str(jump),
         "zero_action_psi": psi_of(zero) if zero is not None else None,
-        "max_abs_offset_rad": float(np.abs(table).max()), "search_seconds": round(time.time() - began, 1),
+        "max_abs_offset_rad": float(np.abs(table).max()),
         "config": {"iterations": cfg.iterations, "population": cfg.population, "seed": cfg.seed, "knots": cfg.knots,
                    "land_by_slack_s": cfg.land_by_slack_s},
         "landing_posture_limits": None if posture is None else dataclasses.asdict(posture),
         "measured": [{"w": float(w), "psi": psi_of(j) if j else None, "passes_fall_checks": ok}
                      for w, j, ok in zip(weights, measured, passes)],
     }
+    # The search time is logged, not stored: push_prior.json holds only what the inputs determine.
     log(f"push prior for {data.task}: ψ {psi_of(jump):.2f} m at w = 1 ({jump}); w(ψ) over "
-        f"ψ {psi_anchors[0]:.2f}–{psi_anchors[-1]:.2f} m from {len(psi_anchors)} anchors")
+        f"ψ {psi_anchors[0]:.2f}–{psi_anchors[-1]:.2f} m from {len(psi_anchors)} anchors, "
+        f"{time.time() - began:.0f} s")
     return PushPrior(table, psi_anchors, weight_anchors, tuple(robot.joint_names), summary)
 
 
@@ -190,8 +193,8 @@ def write_push_prior(out_dir: str | Path, prior: PushPrior | None) -> None:
     doc = {"enabled": prior is not None}
     if prior is not None:
         with atomic_file(out_dir / FILE_ARRAYS) as f:
-            np.savez(f, joint_offsets=prior.joint_offsets, psi_anchors=prior.psi_anchors,
-                     weight_anchors=prior.weight_anchors, joint_names=np.array(prior.joint_names))
+            savez_reproducible(f, joint_offsets=prior.joint_offsets, psi_anchors=prior.psi_anchors,
+                               weight_anchors=prior.weight_anchors, joint_names=np.array(prior.joint_names))
         doc.update({"psi_anchors": prior.psi_anchors.tolist(), "weight_anchors": prior.weight_anchors.tolist(),
                     "summary": prior.summary})
     write_text_atomic(out_dir / FILE_JSON, json.dumps(doc, indent=1))
