@@ -127,4 +127,7 @@ def mirror_for_env(env, raw_dim: int) -> Mirror:
     if not isinstance(layout, dict) or "actor_frame" not in layout:
         raise PipelineInputError("train.fast_td3", "mirror", "the env gives no observation layout to mirror "
                                  "(TrackingEnv.obs_layout); set fast_td3.mirror: false")
-    return Mirror.from_layout(layout, env.joint_names, env.actor_obs_dim, env.critic_obs_dim, raw_dim)
+    joint_names = getattr(env, "joint_names", None)
+    if joint_names is None:  # TrackingEnv keeps them with its robot (the trainer's policy_meta reads them alike)
+        joint_names = env.robot.joint_names
+    return Mirror.from_layout(layout, joint_names, env.actor_obs_dim, env.critic_obs_dim, raw_dim)
