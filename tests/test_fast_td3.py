@@ -6,6 +6,7 @@ tracking, TrackingEnv's contract); the mirror is checked against the G1's own ki
 
 from __future__ import annotations
 
+import json
 import types
 
 import mujoco
@@ -20,7 +21,7 @@ from pipeline.rl.fast_td3 import build_fast_td3_trainer
 from pipeline.rl.mirror import Mirror, joint_mirror, qpos_mirror
 from pipeline.rl.replay_buffer import ReplayBuffer
 from pipeline.rl.trainer import Trainer, train_stage2
-from test_rl import ToyKeyframeEnv, evaluate, make_stage1, small_cfg
+from test_rl import META, ToyKeyframeEnv, evaluate, make_stage1, small_cfg
 
 torch.set_num_threads(1)
 
@@ -309,3 +310,50 @@ def test_mirrored_motion_stays_mirrored_under_the_dynamics():
     unsigned = want_qvel.copy()
     unsigned[6:] = data.qvel[6:][partner]
     assert np.abs(mirrored.qvel - unsigned).max() > 0.2 * np.abs(data.qvel).max()
+
+
+# ------------------------------------------------------------------------------------------ chunks
+@pytest.mark.parametrize("algorithm", ["ppo", "fast_td3"])
+def test_a_run_in_chunks_trains_what_one_run_trains(tmp_path, algorithm, monkeypatch):
+    """Chunks of (nearly) zero seconds stop at every checkpoint; resumed until done they give the
+    uninterrupted run's weights, and the wall-time cap counts the chunks' time together."""
+    if algorithm == "ppo":
+        cfg = small_cfg(save_interval=2, ppo={"num_envs": 16, "steps_per_iteration": 4, "epochs": 1, "minibatches": 2})
+
+        def make(run_dir, seed):
+            torch.manual_seed(seed)
+            env = ToyKeyframeEnv(16)
+            policy, critic = make_stage1(env, cfg, seed)
+            return Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=META, tensorboard=False,
+                           progress=False, log=lambda *_: None)
+    else:
+        cfg = td3_cfg(save_interval=2, fast_td3={"steps_per_iteration": 6})
+
+        def make(run_dir, seed):
+            return td3_trainer(run_dir, cfg, seed)
+
+    straight = make(tmp_path / "a", 0)
+    straight.run(6)
+    first = make(tmp_path / "b", 0)
+    paused = first.run(6, chunk_s=0.0)
+    assert paused == {"stage": 1, "paused": True, "iteration": 2, "train_seconds": first.history[-1]["seconds"],
+                      "checkpoint": str(tmp_path / "b" / "checkpoints" / "iter_000002")}
+    assert not (tmp_path / "b" / "policy").exists()
+    chunks = 1
+    while True:
+        result = make(tmp_path / "b", 100 + chunks).run(6, resume=True, chunk_s=0.0)
+        chunks += 1
+        if not result.get("paused"):
+            break
+    assert chunks == 3 and result["iterations"] == 6
+    final, _ = load_policy(tmp_path / "b" / "policy")
+    for (k, a), b in zip(straight.policy.state_dict().items(), final.state_dict().values()):
+        assert torch.equal(a, b), k
+    # the wall clock counts on across chunks: each chunk's first iteration reads later than the last one's
+    seconds = [h["seconds"] for h in json.loads((tmp_path / "b" / "history.json").read_text())]
+    assert seconds == sorted(seconds)
+    # and a cap the earlier chunks have spent stops the next chunk after one iteration
+    make(tmp_path / "c", 0).run(6, chunk_s=0.0)
+    trainer = make(tmp_path / "c", 1)
+    result = trainer.run(6, resume=True, time_limit_s=1e-9)
+    assert result["iterations"] == 3 and result["stopped_by_time_limit"]

@@ -273,6 +273,8 @@ class FastTD3Trainer(Trainer):
 def build_fast_td3_trainer(env, data, cfg: TrainConfig, run_dir, phase_rate: float, **trainer_kwargs) -> FastTD3Trainer:
     """Stage 1's actor (a Stage1Policy with a bounded mean), the group critics and the trainer."""
     variant, net, td3 = cfg.variant_spec, cfg.network, cfg.fast_td3
+    if variant.amp != "none":  # the config refuses this pairing too; a variant set per run (stages.py) lands here
+        raise PipelineInputError("train", "algorithm", f"variant {cfg.variant!r} (AMP) trains with ppo only, not fast_td3")
     policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=variant.adaptive_phase_stage1, phase_rate=phase_rate,
                           normalize_obs=cfg.ppo.normalize_obs, output_bound=td3.action_bound)

@@ -239,12 +239,18 @@ class Trainer:
             torch.cuda.synchronize(self.device)
 
     # -- the loop ---------------------------------------------------------------------------
-    def run(self, iterations: int, resume: bool = False, time_limit_s: float | None = None) -> dict:
+    def run(self, iterations: int, resume: bool = False, time_limit_s: float | None = None,
+            chunk_s: float | None = None) -> dict:
         """Trains `iterations` (0: until `time_limit_s` of wall time), saving as it goes.
 
         The curricula follow the iteration count, so the same config trains the same policy on any
         machine, however busy; a time limit only stops a slow run early, and the run says so. A run
-        sized by time alone (`iterations` 0) has no count to follow: its curricula follow wall time."""
+        sized by time alone (`iterations` 0) has no count to follow: its curricula follow wall time.
+
+        `chunk_s`: a long run spread over several invocations. This one stops at the first checkpoint
+        after `chunk_s` seconds of its own and returns {"paused": True, ...} without writing the final
+        policy; `resume=True` continues from there. A chunk ends only at a save boundary, so the chunks
+        train what one uninterrupted run trains, and the time limit counts the chunks' time together."""
         by_time = iterations <= 0
         if by_time and not (time_limit_s and time_limit_s > 0):
             raise ValueError("a run with 0 iterations trains until its time limit: give time_limit_s > 0")
@@ -260,6 +266,7 @@ class Trainer:
         bar = tqdm(steps, initial=start, total=None if by_time else iterations, desc=f"stage {self.stage}",
                    disable=not self.progress, mininterval=2.0, file=sys.stderr)
         stopped_early = False
+        chunk_start = time.time()
 
         def fraction_done(iterations_done: int) -> float:
             """How far through the stage: by the clock for a run sized by time, else by the count."""
@@ -294,8 +301,18 @@ class Trainer:
                 if fraction_done(it + 1) >= 1.0 - self.cfg.average_tail:
                     self.average.add(self.policy.state_dict())
             out_of_time = time_limit_s is not None and time_limit_s > 0 and time.time() - t0 > time_limit_s
-            if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations or out_of_time:
+            at_boundary = (it + 1) % self.cfg.save_interval == 0
+            if at_boundary or it + 1 == iterations or out_of_time:
                 self._save(it + 1, obs)
+            finished = out_of_time or it + 1 == iterations
+            if chunk_s is not None and at_boundary and not finished and time.time() - chunk_start >= chunk_s:
+                bar.close()
+                if writer is not None:
+                    writer.close()
+                self.log(f"[train] stage {self.stage}: chunk of {chunk_s:.0f} s done at iteration {it + 1}; "
+                         f"resume to continue ({self.checkpoints.latest()})")
+                return {"stage": self.stage, "paused": True, "iteration": it + 1,
+                        "train_seconds": self.history[-1]["seconds"], "checkpoint": str(self.checkpoints.latest())}
             if out_of_time:
                 if not by_time and it + 1 < iterations:
                     stopped_early = True
@@ -542,7 +559,9 @@ def pin_observation_stats(env, normalizers, keep_values: bool = False) -> None:
 
 
 def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, env=None,
-                 iterations: int | None = None, time_limit_s: float | None = None, **trainer_kwargs) -> dict:
+                 iterations: int | None = None, time_limit_s: float | None = None, chunk_s: float | None = None,
+                 **trainer_kwargs) -> dict:
+    """Stage 1 with `cfg.algorithm`'s trainer. `chunk_s`: stop after about this long, resumable (Trainer.run)."""
     variant: Variant = cfg.variant_spec
     _seed(cfg.seed)
     env = env if env is not None else make_env(data, env_cfg, cfg, stage=1)
@@ -553,7 +572,8 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
         trainer = build_fast_td3_trainer(env, data, cfg, run_dir, phase_rate, **trainer_kwargs)
         if time_limit_s is None and cfg.time_limit_stage1_s > 0:
             time_limit_s = cfg.time_limit_stage1_s
-        return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
+        return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume,
+                           time_limit_s=time_limit_s, chunk_s=chunk_s)
     net = cfg.network
     policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=variant.adaptive_phase_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
@@ -568,11 +588,13 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
                       use_phase_offset=variant.adaptive_phase_stage1, **trainer_kwargs)
     if time_limit_s is None and cfg.time_limit_stage1_s > 0:
         time_limit_s = cfg.time_limit_stage1_s
-    return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
+    return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume,
+                       time_limit_s=time_limit_s, chunk_s=chunk_s)
 
 
 def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1_dir: str | Path, resume: bool = False,
-                 env=None, iterations: int | None = None, time_limit_s: float | None = None, **trainer_kwargs) -> dict:
+                 env=None, iterations: int | None = None, time_limit_s: float | None = None, chunk_s: float | None = None,
+                 **trainer_kwargs) -> dict:
     variant: Variant = cfg.variant_spec
     stage1_dir = Path(stage1_dir)
     if not (stage1_dir / "config.json").is_file():
@@ -600,7 +622,8 @@ def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1
     trainer = Trainer(env, policy, critic, cfg, run_dir, stage=2, meta=meta, l2c2=False, use_phase_offset=True, **trainer_kwargs)
     if time_limit_s is None and cfg.time_limit_stage2_s > 0:
         time_limit_s = cfg.time_limit_stage2_s
-    return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
+    return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume,
+                       time_limit_s=time_limit_s, chunk_s=chunk_s)
 
 
 def train(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, **kwargs) -> dict:
@@ -611,6 +634,8 @@ def train(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool 
         metrics = json.loads(s1_metrics_file.read_text())  # stage 1 already finished
     else:
         metrics = train_stage1(data, env_cfg, cfg, run_dir / "stage1", resume=resume, **kwargs)
+        if metrics.get("paused"):  # a chunk (chunk_s) ended inside stage 1: the next resume goes on there
+            return metrics
     if cfg.variant_spec.stage2:
         metrics = train_stage2(data, env_cfg, cfg, run_dir / "stage2", stage1_dir=run_dir / "stage1" / "policy",
                                resume=resume, **kwargs)
