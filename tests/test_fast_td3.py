@@ -20,7 +20,7 @@ from pipeline.rl.config import TrainConfig
 from pipeline.rl.fast_td3 import build_fast_td3_trainer
 from pipeline.rl.mirror import Mirror, joint_mirror, qpos_mirror
 from pipeline.rl.replay_buffer import ReplayBuffer
-from pipeline.rl.trainer import Trainer, train_stage2
+from pipeline.rl.trainer import Trainer, train, train_stage2
 from test_rl import META, ToyKeyframeEnv, evaluate, make_stage1, small_cfg
 
 torch.set_num_threads(1)
@@ -357,3 +357,12 @@ def test_a_run_in_chunks_trains_what_one_run_trains(tmp_path, algorithm, monkeyp
     trainer = make(tmp_path / "c", 1)
     result = trainer.run(6, resume=True, time_limit_s=1e-9)
     assert result["iterations"] == 3 and result["stopped_by_time_limit"]
+
+
+def test_a_chunk_that_ends_in_stage1_does_not_start_stage2(tmp_path):
+    cfg = small_cfg(save_interval=2, iterations_stage1=4, iterations_stage2=2,
+                    ppo={"num_envs": 16, "steps_per_iteration": 4, "epochs": 1, "minibatches": 2})
+    metrics = train(None, None, cfg, tmp_path, env=ToyKeyframeEnv(16), chunk_s=0.0, tensorboard=False, progress=False,
+                    log=lambda *_: None)
+    assert metrics["paused"] and metrics["iteration"] == 2
+    assert not (tmp_path / "stage2").exists() and not (tmp_path / "stage1" / "policy").exists()

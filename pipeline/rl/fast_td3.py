@@ -128,7 +128,7 @@ class FastTD3:
         stats = {"critic_loss": critic_loss.detach(), "q_sparse": q_now["sparse"].mean() / self.scales["sparse"],
                  "q_dense": q_now["dense"].mean() / self.scales["dense"]}
 
-        # -- actor: ascend the groups' Q, each scaled by its spread over the batch
+        # -- actor: ascend the groups' weighted Q (the twins' mean)
         self.updates += 1
         if self.updates % cfg.policy_delay == 0:
             q1, q2 = self.critic(x, self.actor.raw_mean(batch["actor_obs"]))
@@ -144,8 +144,8 @@ class FastTD3:
 
         # -- target critics
         with torch.no_grad():
-            for target, online in zip(self.target.parameters(), self.critic.parameters()):
-                target.lerp_(online, cfg.tau)
+            for slow, online in zip(self.target.parameters(), self.critic.parameters()):
+                slow.lerp_(online, cfg.tau)
         return stats
 
     def state_dict(self) -> dict:
