@@ -131,15 +131,16 @@ class FastTD3:
         # -- actor: ascend the groups' weighted Q (the twins' mean)
         self.updates += 1
         if self.updates % cfg.policy_delay == 0:
+            self.critic.requires_grad_(False)  # the gradient flows through the critics to the action, not into them
             q1, q2 = self.critic(x, self.actor.raw_mean(batch["actor_obs"]))
             q = 0.5 * (q1 + q2)
             actor_loss = -sum(self.weights[g] * q[:, i].mean() for i, g in enumerate(GROUPS))
             self.actor_optimizer.zero_grad(set_to_none=True)
             actor_loss.backward()
+            self.critic.requires_grad_(True)
             if cfg.max_grad_norm > 0:
                 nn.utils.clip_grad_norm_(self.actor_params, cfg.max_grad_norm)
             self.actor_optimizer.step()
-            self.critic_optimizer.zero_grad(set_to_none=True)  # the actor's loss reached the critics' weights too
             stats["actor_loss"] = actor_loss.detach()
 
         # -- target critics
