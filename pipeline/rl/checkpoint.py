@@ -91,7 +91,7 @@ def build_policy_from_meta(meta: dict):
     arch = meta["architecture"]
     base = Stage1Policy(meta["actor_obs_dim"], meta["action_dim"], arch["actor_hidden"], arch["activation"],
                         adaptive_phase=arch.get("adaptive_phase", False), phase_rate=meta["phase_rate"],
-                        normalize_obs=arch.get("normalize_obs", True))
+                        normalize_obs=arch.get("normalize_obs", True), output_bound=arch.get("output_bound", 0.0))
     if int(meta["stage"]) == 1:
         return base
     return Stage2Policy(base, arch["adapter_hidden"], arch["activation"], freeze_base=arch.get("freeze_base", True),

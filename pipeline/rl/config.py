@@ -110,6 +110,49 @@ class PPOConfig:
 
 
 @dataclass
+class FastTD3Config:
+    """The off-policy trainer (pipeline/rl/fast_td3.py): many worlds feed a large replay buffer,
+    large batches, clipped double Q per reward group, normalised observations, a deterministic actor
+    explored with per-world Gaussian noise."""
+
+    num_envs: int = 4096
+    steps_per_iteration: int = 8        # env steps of every world per iteration (curricula, logs, saves)
+    updates_per_step: int = 2           # critic updates after each env step of all worlds
+    policy_delay: int = 2               # one actor update every this many critic updates
+    batch_size: int = 32768
+    buffer_size: int = 1_048_576        # transitions kept (all worlds together)
+    learning_starts: int = 4            # env steps of every world before the first update
+    n_step: int = 3                     # n-step TD targets (cut at episode ends)
+    gamma_sparse: float = 1.0           # as PPO's: the keyframe group's episodic return
+    gamma_dense: float = 0.99
+    # PPO bootstraps the dense group at timeouts. TrackingEnv's timeouts are the clip's end (phase 1): a
+    # state no stored transition starts from, so its Q is never regressed and an off-policy bootstrap
+    # would feed its arbitrary value to every state before it. Off: a timeout ends both groups' returns.
+    bootstrap_dense_timeouts: bool = False
+    tau: float = 0.1                    # Polyak rate of the target critics
+    actor_learning_rate: float = 3e-4
+    critic_learning_rate: float = 3e-4
+    weight_decay: float = 0.1           # AdamW, both nets
+    max_grad_norm: float = 0.0          # 0: no clipping
+    # Exploration: each world draws its noise std uniformly in [min, max] at every episode start (mixed noise).
+    exploration_std_min: float = 0.05
+    exploration_std_max: float = 0.6
+    target_noise: float = 0.2           # target policy smoothing: std and clip of the noise on the next action
+    target_noise_clip: float = 0.5
+    action_bound: float = 3.0           # raw actions kept in ±bound (tanh-scaled in the actor)
+    # Each group's rewards times its scale are what its critics regress (returns near unit size).
+    reward_scale_sparse: float = 0.01
+    reward_scale_dense: float = 0.01
+    # Actor loss −Σ_g w_g·Q_g, each Q in its group's scaled reward units.
+    q_weight_sparse: float = 1.0
+    q_weight_dense: float = 0.5
+    mirror: bool = False                # left-right mirror augmentation of replayed samples (pipeline/rl/mirror.py)
+    # Store the replay buffer in checkpoints: resume is then exact. Off, a resumed run refills
+    # `learning_starts` steps before updating again (smaller checkpoints, not bit-identical).
+    checkpoint_buffer: bool = True
+
+
+@dataclass
 class AMPConfig:
     window: int = 5  # joint-position frames per discriminator sample
     style_weight: float = 0.1
@@ -123,6 +166,9 @@ class AMPConfig:
 @dataclass
 class TrainConfig:
     profile: str = "cpu"
+    # Stage 1's trainer: "ppo" (the paper's double-critic PPO) or "fast_td3" (off-policy, pipeline/rl/fast_td3.py).
+    # Stage 2's adapters always train with PPO, on a stage-1 actor from either.
+    algorithm: str = "ppo"
     variant: str = "adamimic"
     seed: int = 0
     device: str = "cpu"
@@ -143,12 +189,20 @@ class TrainConfig:
     average_tail: float = 0.0
     average_every: int = 10
     ppo: PPOConfig = field(default_factory=PPOConfig)
+    fast_td3: FastTD3Config = field(default_factory=FastTD3Config)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     amp: AMPConfig = field(default_factory=AMPConfig)
 
     @property
     def variant_spec(self) -> Variant:
         return get_variant(self.variant)
+
+    def num_envs(self, stage: int = 1) -> int:
+        """Worlds the stage's trainer steps (stage 2 is always PPO)."""
+        return self.fast_td3.num_envs if stage == 1 and self.algorithm == "fast_td3" else self.ppo.num_envs
+
+    def steps_per_iteration(self, stage: int = 1) -> int:
+        return self.fast_td3.steps_per_iteration if stage == 1 and self.algorithm == "fast_td3" else self.ppo.steps_per_iteration
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -165,9 +219,32 @@ class TrainConfig:
         return cfg
 
 
+ALGORITHMS = ("ppo", "fast_td3")
+
+
 def _validate(cfg: TrainConfig, where: str) -> None:
-    p = cfg.ppo
+    if cfg.algorithm not in ALGORITHMS:
+        raise PipelineInputError(where, "algorithm", f"unknown algorithm {cfg.algorithm!r}; known: {', '.join(ALGORITHMS)}")
+    if cfg.algorithm == "fast_td3" and cfg.variant_spec.amp != "none":
+        raise PipelineInputError(where, "algorithm", f"variant {cfg.variant!r} (AMP) trains with ppo only")
+    p, q = cfg.ppo, cfg.fast_td3
     checks = [
+        (q.num_envs > 0, "fast_td3.num_envs", "must be > 0"),
+        (q.steps_per_iteration > 0, "fast_td3.steps_per_iteration", "must be > 0"),
+        (q.updates_per_step >= 0, "fast_td3.updates_per_step", "must be >= 0"),
+        (q.policy_delay >= 1, "fast_td3.policy_delay", "must be >= 1"),
+        (q.batch_size > 0, "fast_td3.batch_size", "must be > 0"),
+        (q.n_step >= 1, "fast_td3.n_step", "must be >= 1"),
+        (q.learning_starts >= q.n_step, "fast_td3.learning_starts", "must be >= n_step"),
+        (q.buffer_size >= q.num_envs * (q.learning_starts + 1), "fast_td3.buffer_size",
+         "must hold at least num_envs * (learning_starts + 1) transitions"),
+        (0.0 < q.gamma_sparse <= 1.0, "fast_td3.gamma_sparse", "must be in (0, 1]"),
+        (0.0 < q.gamma_dense <= 1.0, "fast_td3.gamma_dense", "must be in (0, 1]"),
+        (0.0 < q.tau <= 1.0, "fast_td3.tau", "must be in (0, 1]"),
+        (q.actor_learning_rate > 0 and q.critic_learning_rate > 0, "fast_td3.actor_learning_rate", "learning rates must be > 0"),
+        (0.0 <= q.exploration_std_min <= q.exploration_std_max, "fast_td3.exploration_std_min", "must be in [0, exploration_std_max]"),
+        (q.action_bound > 0, "fast_td3.action_bound", "must be > 0"),
+        (q.reward_scale_sparse > 0 and q.reward_scale_dense > 0, "fast_td3.reward_scale_sparse", "reward scales must be > 0"),
         (p.num_envs > 0, "ppo.num_envs", "must be > 0"),
         (p.steps_per_iteration > 0, "ppo.steps_per_iteration", "must be > 0"),
         (p.epochs > 0, "ppo.epochs", "must be > 0"),
@@ -201,9 +278,10 @@ ACTIVATIONS = {"elu", "relu", "tanh", "silu"}
 
 
 def gpu_profile() -> TrainConfig:
-    """The paper's appendix values."""
+    """The paper's appendix values (fast_td3: FastTD3's humanoid sizes)."""
+    # fast_td3: its defaults; the buffer (~4 GB at 4096 worlds) stays out of checkpoints (docs/trainers.md).
     return TrainConfig(profile="gpu", device="cuda", backend="warp", iterations_stage1=3000,
-                       iterations_stage2=1500, save_interval=100)
+                       iterations_stage2=1500, save_interval=100, fast_td3=FastTD3Config(checkpoint_buffer=False))
 
 
 def cpu_profile() -> TrainConfig:
@@ -221,6 +299,11 @@ def cpu_profile() -> TrainConfig:
         network=NetworkConfig(actor_hidden=[256, 128, 64], critic_hidden=[256, 128, 64], adapter_hidden=[128, 64],
                               init_log_std=-0.7),
         amp=AMPConfig(hidden=[128, 64], batch_size=1024),
+        # Same worlds and steps per iteration as PPO's (the same env steps per iteration, so the curricula
+        # move alike). One critic update of 1024 samples per env step of all worlds: about the network
+        # passes of a PPO iteration (4608 samples x 5 epochs), each sample replayed about as often.
+        fast_td3=FastTD3Config(num_envs=192, steps_per_iteration=24, updates_per_step=1, batch_size=1024,
+                               buffer_size=98_304, learning_starts=8),
     )
 
 

@@ -96,12 +96,17 @@ class PhaseBound(nn.Module):
 
 class Stage1Policy(nn.Module):
     """Gaussian actor with a state-independent log-std. With `adaptive_phase` one more output is the
-    phase-rate offset (variants *_dphi); otherwise Δφ^Δ is always 0."""
+    phase-rate offset (variants *_dphi); otherwise Δφ^Δ is always 0.
+
+    `output_bound` > 0 squashes the mean into ±bound (bound·tanh(x/bound)): the off-policy trainer's
+    deterministic actor (fast_td3.py), whose critics must not be asked about actions they never saw.
+    Its log-std is then unused; the mean is the policy, here and in stage 2."""
 
     def __init__(self, obs_dim: int, action_dim: int, hidden: list[int], activation: str = "elu",
                  init_log_std: float = 0.0, adaptive_phase: bool = False, phase_rate: float = 0.01,
-                 normalize_obs: bool = True):
+                 normalize_obs: bool = True, output_bound: float = 0.0):
         super().__init__()
+        self.output_bound = float(output_bound)
         self.obs_dim, self.action_dim, self.adaptive_phase = obs_dim, action_dim, adaptive_phase
         self.raw_dim = action_dim + int(adaptive_phase)
         self.normalizer = EmpiricalNormalizer(obs_dim, enabled=normalize_obs)
@@ -110,7 +115,10 @@ class Stage1Policy(nn.Module):
         self.phase_bound = PhaseBound(phase_rate)
 
     def raw_mean(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.body(self.normalizer(obs))
+        out = self.body(self.normalizer(obs))
+        if self.output_bound > 0:
+            return self.output_bound * torch.tanh(out / self.output_bound)
+        return out
 
     def distribution(self, obs: torch.Tensor) -> torch.distributions.Normal:
         mean = self.raw_mean(obs)

@@ -143,21 +143,27 @@ class Trainer:
         if amp is not None:
             amp.to(self.device)
             amp_reference = amp_reference.to(self.device)
-        self.ppo = PPO(policy, critic, cfg.ppo, l2c2=l2c2)
         self.amp, self.amp_reference = amp, amp_reference
         self.use_phase_offset = use_phase_offset
         self.checkpoints = CheckpointManager(self.run_dir, cfg.keep_checkpoints)
         self.average = WeightAverage() if cfg.average_tail > 0 else None
         self.stats = EpisodeStats(env.num_envs, self.device)
-        # White noise (the paper's) is drawn inside policy.sample; correlated noise needs a state per world.
         self.noise = None
-        if cfg.ppo.noise_correlation > 0:
-            self.noise = CorrelatedNoise(env.num_envs, policy.raw_dim, cfg.ppo.noise_correlation, self.device)
+        self._setup_algorithm(l2c2)
         self.history: list[dict] = []
         self.tensorboard, self.progress = tensorboard, progress
         self.joint_window = None
         if amp is not None:
             self.joint_window = JointWindow(env.num_envs, env.action_dim, cfg.amp.window, self.device)
+
+    def _setup_algorithm(self, l2c2: bool) -> None:
+        """PPO here; the off-policy trainer (fast_td3.FastTD3Trainer) sets up its own."""
+        self.algorithm = "ppo"
+        self.steps_per_iteration = self.cfg.ppo.steps_per_iteration
+        self.ppo = PPO(self.policy, self.critic, self.cfg.ppo, l2c2=l2c2)
+        # White noise (the paper's) is drawn inside policy.sample; correlated noise needs a state per world.
+        if self.cfg.ppo.noise_correlation > 0:
+            self.noise = CorrelatedNoise(self.env.num_envs, self.policy.raw_dim, self.cfg.ppo.noise_correlation, self.device)
 
     # -- env helpers ------------------------------------------------------------------------
     def _env_has_state(self) -> bool:
@@ -179,7 +185,7 @@ class Trainer:
 
     # -- one iteration ----------------------------------------------------------------------
     def collect(self, obs: dict) -> tuple[Rollout, dict, dict]:
-        steps, n = self.cfg.ppo.steps_per_iteration, self.env.num_envs
+        steps, n = self.steps_per_iteration, self.env.num_envs
         raw_dim = self.policy.raw_dim
         ro = Rollout.allocate(steps, n, obs["actor"].shape[-1], obs["critic"].shape[-1], raw_dim, self.device)
         amp_windows = []
@@ -233,12 +239,18 @@ class Trainer:
             torch.cuda.synchronize(self.device)
 
     # -- the loop ---------------------------------------------------------------------------
-    def run(self, iterations: int, resume: bool = False, time_limit_s: float | None = None) -> dict:
+    def run(self, iterations: int, resume: bool = False, time_limit_s: float | None = None,
+            chunk_s: float | None = None) -> dict:
         """Trains `iterations` (0: until `time_limit_s` of wall time), saving as it goes.
 
         The curricula follow the iteration count, so the same config trains the same policy on any
         machine, however busy; a time limit only stops a slow run early, and the run says so. A run
-        sized by time alone (`iterations` 0) has no count to follow: its curricula follow wall time."""
+        sized by time alone (`iterations` 0) has no count to follow: its curricula follow wall time.
+
+        `chunk_s`: a long run spread over several invocations. This one stops at the first checkpoint
+        after `chunk_s` seconds of its own and returns {"paused": True, ...} without writing the final
+        policy; `resume=True` continues from there. A chunk ends only at a save boundary, so the chunks
+        train what one uninterrupted run trains, and the time limit counts the chunks' time together."""
         by_time = iterations <= 0
         if by_time and not (time_limit_s and time_limit_s > 0):
             raise ValueError("a run with 0 iterations trains until its time limit: give time_limit_s > 0")
@@ -254,6 +266,7 @@ class Trainer:
         bar = tqdm(steps, initial=start, total=None if by_time else iterations, desc=f"stage {self.stage}",
                    disable=not self.progress, mininterval=2.0, file=sys.stderr)
         stopped_early = False
+        chunk_start = time.time()
 
         def fraction_done(iterations_done: int) -> float:
             """How far through the stage: by the clock for a run sized by time, else by the count."""
@@ -264,21 +277,9 @@ class Trainer:
             progress = fraction_done(it)
             self._curriculum(progress)
             self.policy.train()
-            collect_start = time.perf_counter()
-            rollout, obs, extra = self.collect(obs)
-            self._sync()
-            update_start = time.perf_counter()
-            stats = self.ppo.update(rollout)
-            if self.amp is not None:
-                stats.update(self.amp.update(self.amp_reference, extra["amp_windows"]))
-            self._sync()
-            # Where an iteration's time goes (on a GPU the env's small kernels, not the physics, were
-            # the larger part: benchmarks/RESULTS.md).
-            stats.update({"collect_seconds": update_start - collect_start, "update_seconds": time.perf_counter() - update_start})
+            stats, obs = self._iteration(obs)
             stats.update(self.stats.summary())
-            stats.update({"iteration": it + 1, "env_steps": (it + 1) * self.env.num_envs * self.cfg.ppo.steps_per_iteration,
-                          "reward_sparse": rollout.rewards["sparse"].mean().item(),
-                          "reward_dense": rollout.rewards["dense"].mean().item(),
+            stats.update({"iteration": it + 1, "env_steps": (it + 1) * self.env.num_envs * self.steps_per_iteration,
                           "seconds": time.time() - t0})
             for name in ("termination_threshold", "penalty_scale"):  # the env's curricula, when it has them
                 value = getattr(self.env, name, None)
@@ -300,8 +301,18 @@ class Trainer:
                 if fraction_done(it + 1) >= 1.0 - self.cfg.average_tail:
                     self.average.add(self.policy.state_dict())
             out_of_time = time_limit_s is not None and time_limit_s > 0 and time.time() - t0 > time_limit_s
-            if (it + 1) % self.cfg.save_interval == 0 or it + 1 == iterations or out_of_time:
+            at_boundary = (it + 1) % self.cfg.save_interval == 0
+            if at_boundary or it + 1 == iterations or out_of_time:
                 self._save(it + 1, obs)
+            finished = out_of_time or it + 1 == iterations
+            if chunk_s is not None and at_boundary and not finished and time.time() - chunk_start >= chunk_s:
+                bar.close()
+                if writer is not None:
+                    writer.close()
+                self.log(f"[train] stage {self.stage}: chunk of {chunk_s:.0f} s done at iteration {it + 1}; "
+                         f"resume to continue ({self.checkpoints.latest()})")
+                return {"stage": self.stage, "paused": True, "iteration": it + 1,
+                        "train_seconds": self.history[-1]["seconds"], "checkpoint": str(self.checkpoints.latest())}
             if out_of_time:
                 if not by_time and it + 1 < iterations:
                     stopped_early = True
@@ -315,6 +326,23 @@ class Trainer:
             writer.close()
         return self._finish(iterations, stopped_early)
 
+    def _iteration(self, obs: dict) -> tuple[dict, dict]:
+        """One PPO iteration: a rollout, then the update. Returns (figures to log, next observation)."""
+        collect_start = time.perf_counter()
+        rollout, obs, extra = self.collect(obs)
+        self._sync()
+        update_start = time.perf_counter()
+        stats = self.ppo.update(rollout)
+        if self.amp is not None:
+            stats.update(self.amp.update(self.amp_reference, extra["amp_windows"]))
+        self._sync()
+        # Where an iteration's time goes (on a GPU the env's small kernels, not the physics, were
+        # the larger part: benchmarks/RESULTS.md).
+        stats.update({"collect_seconds": update_start - collect_start, "update_seconds": time.perf_counter() - update_start,
+                      "reward_sparse": rollout.rewards["sparse"].mean().item(),
+                      "reward_dense": rollout.rewards["dense"].mean().item()})
+        return stats, obs
+
     @torch.no_grad()
     def _warm_up_normalizers(self) -> None:
         """Fits the observation normalisers on one rollout of the initial policy before the first
@@ -326,7 +354,7 @@ class Trainer:
             return
         obs = self.env.reset()
         actor, critic = [], []
-        for _ in range(self.cfg.ppo.steps_per_iteration):
+        for _ in range(self.steps_per_iteration):
             actor.append(obs["actor"])
             critic.append(obs["critic"])
             raw, _ = self.policy.sample(obs["actor"])
@@ -337,7 +365,7 @@ class Trainer:
 
     # -- saving / resuming ------------------------------------------------------------------
     def _training_state(self, obs: dict) -> dict:
-        state = {"ppo": self.ppo.state_dict(), "rng": rng_state(), "history": self.history,
+        state = {**self._algorithm_state(), "rng": rng_state(), "history": self.history,
                  "stats": self.stats.state_dict(), "stage": self.stage}
         if self._env_has_state():
             state["env"] = self.env.state_dict()
@@ -351,6 +379,16 @@ class Trainer:
                             "window": self.joint_window.frames.clone(), "filled": self.joint_window.filled.clone()}
         return state
 
+    def _algorithm_state(self) -> dict:
+        return {"ppo": self.ppo.state_dict()}
+
+    def _load_algorithm_state(self, state: dict, path: Path) -> None:
+        self.ppo.load_state_dict(state["ppo"])
+
+    def _load_critic(self, path: Path) -> None:
+        _, critic, _ = load_policy(path, with_critic=True)
+        self.critic.load_state_dict(critic.state_dict())
+
     def _save(self, iteration: int, obs: dict) -> None:
         self.checkpoints.save(iteration, self.policy, self.critic, self.meta, self._training_state(obs))
 
@@ -363,11 +401,15 @@ class Trainer:
         check_compatible(meta, self.meta, path)
         if int(meta.get("stage", self.stage)) != self.stage:
             raise PipelineInputError(path, "stage", f"checkpoint is stage {meta.get('stage')}, this run is stage {self.stage}")
-        policy, critic, _ = load_policy(path, with_critic=True)
+        if meta.get("algorithm", "ppo") != self.algorithm:
+            raise PipelineInputError(path, "algorithm", f"checkpoint was trained with {meta.get('algorithm', 'ppo')!r}, this "
+                                     f"run asks for {self.algorithm!r} (train.algorithm); resume with the same "
+                                     f"algorithm, or start a new run directory")
+        policy, _ = load_policy(path)
         self.policy.load_state_dict(policy.state_dict())
-        self.critic.load_state_dict(critic.state_dict())
+        self._load_critic(path)
         state = CheckpointManager.load_state(path)
-        self.ppo.load_state_dict(state["ppo"])
+        self._load_algorithm_state(state, path)
         self.history = list(state["history"])
         self.stats.load_state_dict(state["stats"])
         obs = None
@@ -448,7 +490,8 @@ def phase_rate_of(env, data) -> float:
     return 1.0 / max(motion.num_frames - 1, 1)
 
 
-def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, freeze_base: bool = True) -> dict:
+def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, freeze_base: bool = True,
+                output_bound: float = 0.0) -> dict:
     from pipeline.robot.g1 import load_robot_config
 
     robot = load_robot_config()
@@ -459,6 +502,8 @@ def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, free
     action_offset = getattr(getattr(env, "cfg", None), "action_offset", "default")
     return {
         "robot": robot.name, "task": getattr(data, "task", None), "variant": cfg.variant, "stage": stage,
+        # the trainer of this stage (stage 2 is always PPO)
+        "algorithm": cfg.algorithm if stage == 1 else "ppo",
         "joint_names": list(getattr(env, "joint_names", robot.joint_names)), "action_dim": int(env.action_dim),
         "actor_obs_dim": int(env.actor_obs_dim), "critic_obs_dim": int(env.critic_obs_dim),
         "obs_layout": json.loads(json.dumps(layout, default=lambda x: list(x))) if layout is not None else None,
@@ -469,7 +514,8 @@ def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, free
         "architecture": {"actor_hidden": net.actor_hidden, "critic_hidden": net.critic_hidden,
                          "adapter_hidden": net.adapter_hidden, "activation": net.activation,
                          "adaptive_phase": bool(cfg.variant_spec.adaptive_phase_stage1),
-                         "freeze_base": freeze_base, "normalize_obs": cfg.ppo.normalize_obs},
+                         "freeze_base": freeze_base, "normalize_obs": cfg.ppo.normalize_obs,
+                         "output_bound": output_bound},
         "outputs": [f"joint_action (scaled offset from the {action_offset} joint positions)", "phase_rate_offset"],
         "train_config": cfg.to_dict(),
     }
@@ -479,7 +525,7 @@ def make_env(data, env_cfg, cfg: TrainConfig, *, stage: int):
     from pipeline.envs.tracking_env import TrackingEnv
 
     env_cfg = env_config_for(env_cfg, cfg.variant_spec, stage)
-    return TrackingEnv(env_cfg, data, num_envs=cfg.ppo.num_envs, backend=cfg.backend, device=cfg.device, seed=cfg.seed)
+    return TrackingEnv(env_cfg, data, num_envs=cfg.num_envs(stage), backend=cfg.backend, device=cfg.device, seed=cfg.seed)
 
 
 def env_config_for(env_cfg, variant: Variant, stage: int):
@@ -513,11 +559,21 @@ def pin_observation_stats(env, normalizers, keep_values: bool = False) -> None:
 
 
 def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, env=None,
-                 iterations: int | None = None, time_limit_s: float | None = None, **trainer_kwargs) -> dict:
+                 iterations: int | None = None, time_limit_s: float | None = None, chunk_s: float | None = None,
+                 **trainer_kwargs) -> dict:
+    """Stage 1 with `cfg.algorithm`'s trainer. `chunk_s`: stop after about this long, resumable (Trainer.run)."""
     variant: Variant = cfg.variant_spec
     _seed(cfg.seed)
     env = env if env is not None else make_env(data, env_cfg, cfg, stage=1)
     phase_rate = phase_rate_of(env, data)
+    if cfg.algorithm == "fast_td3":
+        from pipeline.rl.fast_td3 import build_fast_td3_trainer
+
+        trainer = build_fast_td3_trainer(env, data, cfg, run_dir, phase_rate, **trainer_kwargs)
+        if time_limit_s is None and cfg.time_limit_stage1_s > 0:
+            time_limit_s = cfg.time_limit_stage1_s
+        return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume,
+                           time_limit_s=time_limit_s, chunk_s=chunk_s)
     net = cfg.network
     policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=variant.adaptive_phase_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
@@ -532,11 +588,13 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
                       use_phase_offset=variant.adaptive_phase_stage1, **trainer_kwargs)
     if time_limit_s is None and cfg.time_limit_stage1_s > 0:
         time_limit_s = cfg.time_limit_stage1_s
-    return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
+    return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume,
+                       time_limit_s=time_limit_s, chunk_s=chunk_s)
 
 
 def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1_dir: str | Path, resume: bool = False,
-                 env=None, iterations: int | None = None, time_limit_s: float | None = None, **trainer_kwargs) -> dict:
+                 env=None, iterations: int | None = None, time_limit_s: float | None = None, chunk_s: float | None = None,
+                 **trainer_kwargs) -> dict:
     variant: Variant = cfg.variant_spec
     stage1_dir = Path(stage1_dir)
     if not (stage1_dir / "config.json").is_file():
@@ -558,10 +616,14 @@ def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1
     meta = policy_meta(env, data, cfg, 2, phase_rate, freeze_base=variant.freeze_stage1)
     meta["architecture"]["actor_hidden"] = base_meta["architecture"]["actor_hidden"]
     meta["architecture"]["adaptive_phase"] = base_meta["architecture"].get("adaptive_phase", False)
+    # A stage-1 actor from the off-policy trainer is deterministic (bounded mean): the adapters shape its mean.
+    meta["architecture"]["output_bound"] = base_meta["architecture"].get("output_bound", 0.0)
+    meta["stage1_algorithm"] = base_meta.get("algorithm", "ppo")
     trainer = Trainer(env, policy, critic, cfg, run_dir, stage=2, meta=meta, l2c2=False, use_phase_offset=True, **trainer_kwargs)
     if time_limit_s is None and cfg.time_limit_stage2_s > 0:
         time_limit_s = cfg.time_limit_stage2_s
-    return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume, time_limit_s=time_limit_s)
+    return trainer.run(cfg.iterations_stage2 if iterations is None else iterations, resume=resume,
+                       time_limit_s=time_limit_s, chunk_s=chunk_s)
 
 
 def train(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, **kwargs) -> dict:
@@ -572,6 +634,8 @@ def train(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool 
         metrics = json.loads(s1_metrics_file.read_text())  # stage 1 already finished
     else:
         metrics = train_stage1(data, env_cfg, cfg, run_dir / "stage1", resume=resume, **kwargs)
+        if metrics.get("paused"):  # a chunk (chunk_s) ended inside stage 1: the next resume goes on there
+            return metrics
     if cfg.variant_spec.stage2:
         metrics = train_stage2(data, env_cfg, cfg, run_dir / "stage2", stage1_dir=run_dir / "stage1" / "policy",
                                resume=resume, **kwargs)
