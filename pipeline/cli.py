@@ -15,12 +15,19 @@ from typing import Callable
 from pipeline.common.errors import PipelineInputError
 
 
+# A training stage that stopped at the end of its --chunk-minutes, unfinished (sysexits' EX_TEMPFAIL: run again)
+EXIT_PAUSED = 75
+
+
 def stage_parser(description: str) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--params", default="params.yaml", help="parameters file (default: params.yaml)")
     parser.add_argument("--task", help="task name, a key of `tasks:` in params.yaml")
     parser.add_argument("--variant", help="training variant (see `variants:` in params.yaml)")
     parser.add_argument("--resume", action="store_true", help="continue training from the latest checkpoint")
+    parser.add_argument("--chunk-minutes", type=float, default=None,
+                        help="training: stop at the first checkpoint after this many minutes and exit with "
+                             f"{EXIT_PAUSED}; rerun with --resume to go on (the wall-time caps count every chunk)")
     parser.add_argument("--seed", type=int, help="one of `extra_seeds` in params.yaml (train_seed, evaluate_seed)")
     return parser
 

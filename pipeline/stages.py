@@ -6,10 +6,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import sys
 from pathlib import Path
 
 from pipeline import paths
 from pipeline.common.atomic import atomic_dir, write_text_atomic
+from pipeline.common.errors import PipelineInputError
 from pipeline.config import PipelineConfig
 
 
@@ -95,21 +97,42 @@ def _tracking_data(params: PipelineConfig, task: str, variant: str):
     return data
 
 
+def _chunk_s(args) -> float | None:
+    """`--chunk-minutes` in seconds (None: train to the end in one go)."""
+    minutes = getattr(args, "chunk_minutes", None)
+    if minutes is None:
+        return None
+    if not minutes > 0:
+        raise PipelineInputError("command line", "--chunk-minutes", f"must be > 0, got {minutes}")
+    return 60.0 * minutes
+
+
+def _finish_training(metrics: dict) -> None:
+    """Print a training stage's metrics; a chunk that ended unfinished exits with EXIT_PAUSED."""
+    from pipeline.cli import EXIT_PAUSED
+
+    print(json.dumps(metrics, indent=1, default=float))
+    if metrics.get("paused"):
+        print("training paused at the end of its chunk: run the same command with --resume to go on",
+              file=sys.stderr)
+        sys.exit(EXIT_PAUSED)
+
+
 def run_train_stage1(params: PipelineConfig, args) -> None:
-    """Stage 1: sparse keyframe tracking (or the variant's dense baseline) with double-critic PPO."""
+    """Stage 1: sparse keyframe tracking (or the variant's dense baseline) with `train.algorithm`."""
     from pipeline.rl.trainer import train_stage1
 
     data = _tracking_data(params, args.task, args.variant)
     run_dir = paths.model_dir(args.task, args.variant) / "stage1"
-    metrics = train_stage1(data, params.env, _train_config(params, args.variant), run_dir, resume=args.resume)
-    print(json.dumps(metrics, indent=1, default=float))
+    _finish_training(train_stage1(data, params.env, _train_config(params, args.variant), run_dir,
+                                  resume=args.resume, chunk_s=_chunk_s(args)))
 
 
 def run_train_stage2(params: PipelineConfig, args) -> None:
     """Stage 2: phase and tracking adapters on the frozen stage-1 policy (if the variant has one)."""
     model_dir = paths.model_dir(args.task, args.variant)
-    metrics = _train_stage2_into(params, args, _train_config(params, args.variant), model_dir, resume=args.resume)
-    print(json.dumps(metrics, indent=1, default=float))
+    _finish_training(_train_stage2_into(params, args, _train_config(params, args.variant), model_dir,
+                                        resume=args.resume))
 
 
 def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resume: bool = False) -> dict:
@@ -119,7 +142,8 @@ def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resum
     final = model_dir / "final"
     if cfg.variant_spec.stage2:
         data = _tracking_data(params, args.task, args.variant)
-        return train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy", resume=resume)
+        return train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy", resume=resume,
+                            chunk_s=_chunk_s(args))
     # One-stage variants: their final policy is the stage-1 policy, copied so later stages
     # read every variant from the same place.
     with atomic_dir(final) as staging:
@@ -148,7 +172,9 @@ def run_train_seed(params: PipelineConfig, args) -> None:
     cfg = dataclasses.replace(_train_config(params, args.variant), seed=seed)
     model_dir = paths.seed_model_dir(args.task, args.variant, seed)
     data = _tracking_data(params, args.task, args.variant)
-    stage1 = train_stage1(data, params.env, cfg, model_dir / "stage1", resume=args.resume)
+    stage1 = train_stage1(data, params.env, cfg, model_dir / "stage1", resume=args.resume, chunk_s=_chunk_s(args))
+    if stage1.get("paused"):
+        _finish_training(stage1)
     final = _train_stage2_into(params, args, cfg, model_dir, resume=args.resume)
     print(json.dumps({"seed": seed, "stage1": stage1, "final": final}, indent=1, default=float))
 
