@@ -135,6 +135,28 @@ def test_a_new_result_changes_the_page(made_up_repo):
     assert "| adamimic | 100.0 ± 1.2 |" in after and "| adamimic | 100.0 ± 1.2 |" not in before
 
 
+def test_the_spread_over_training_seeds_comes_from_the_report(made_up_repo):
+    from pipeline.evaluation.report import seed_summary
+
+    root = made_up_repo
+    assert "Success over training seeds" not in write_results_page(root).read_text()
+    by_seed = {0: _metrics("hop", "adamimic", 62.5, 12.5), 1: _metrics("hop", "adamimic", 12.5, 0.0),
+               2: _metrics("hop", "adamimic", 37.5, 25.0)}
+    seeds = root / "reports" / "hop" / "seeds.json"
+    seeds.parent.mkdir(parents=True)
+    seeds.write_text(json.dumps({"adamimic": seed_summary(by_seed)}))
+    page = write_results_page(root).read_text()
+    hop = page[page.index("## hop"):page.index("## leap")]
+    assert "### Success over training seeds (3: 0, 1, 2)" in hop
+    assert "| adamimic | 37.5 ± 25.0 [12.5–62.5] |" in hop  # easy: mean ± sample std [min–max]
+    assert "(../reports/hop/seeds.json)" in hop
+
+    seeds.write_text(json.dumps({"adamimic": {"seeds": [0, 1]}}))
+    with pytest.raises(PipelineInputError) as error:
+        write_results_page(root)
+    assert error.value.source == str(seeds) and error.value.field == "adamimic"
+
+
 @pytest.mark.parametrize("breakage, field", [
     (lambda doc: doc.pop("ranges"), "ranges"),
     (lambda doc: doc["ranges"]["easy"].pop("e_g_bpe"), "ranges.easy.e_g_bpe"),

@@ -209,13 +209,13 @@ def seed_summary(docs_by_seed: dict[int, dict]) -> dict:
     return out
 
 
-def seeds_table(summaries: dict[str, dict]) -> str:
+def seeds_table(summaries: dict[str, dict], heading: str = "##") -> str:
     """Markdown: success (%) per training seed and over them, one row per variant, from seed_summary."""
     if not summaries:
         return ""
     seeds = next(iter(summaries.values()))["seeds"]
     groups = [g for g in RANGE_ORDER if any(g in s["ranges"] for s in summaries.values())]
-    lines = [f"\n## Success over training seeds ({len(seeds)}: {', '.join(map(str, seeds))})\n",
+    lines = [f"\n{heading} Success over training seeds ({len(seeds)}: {', '.join(map(str, seeds))})\n",
              "Each seed trains stage 1 + 2 from scratch with everything else equal, and is evaluated as above. "
              "The table above is the first seed's policy alone; how far it moves from seed to seed is here: "
              "mean ± sample std over seeds [min–max], then each seed's success (%).\n",

@@ -30,7 +30,7 @@ from pathlib import Path
 from pipeline.common.atomic import atomic_file, write_text_atomic
 from pipeline.common.errors import PipelineInputError
 from pipeline.evaluation.metrics import METRIC_NAMES
-from pipeline.evaluation.report import RANGE_ORDER, _cell, endings_line
+from pipeline.evaluation.report import RANGE_ORDER, _cell, endings_line, seeds_table
 
 PAPER_TITLE = "Towards Adaptable Humanoid Control via Adaptive Motion Tracking"
 MAX_IMAGE_BYTES = 300_000  # every image this page commits stays below this
@@ -78,6 +78,21 @@ def read_metrics(path: Path) -> dict:
                 raise PipelineInputError(path, f"ranges.{name}.{metric}", "missing its mean and std")
     if not isinstance(doc.get("psi_ranges"), dict):
         raise PipelineInputError(path, "psi_ranges", "missing: the task's ψ ranges")
+    return doc
+
+
+def read_seeds(path: Path) -> dict:
+    """reports/<task>/seeds.json of the report stage: {variant: {seeds, ranges}}, checked for what the page uses."""
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise PipelineInputError(path, None, f"not valid JSON ({error})") from None
+    if not isinstance(doc, dict) or not doc:
+        raise PipelineInputError(path, None, "must be a non-empty JSON object, one entry per variant")
+    for variant, summary in doc.items():
+        if not isinstance(summary, dict) or not isinstance(summary.get("seeds"), list) \
+                or not isinstance(summary.get("ranges"), dict):
+            raise PipelineInputError(path, variant, "needs its `seeds` list and `ranges`")
     return doc
 
 
@@ -275,6 +290,10 @@ def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list
     out += ["", "Succ. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s², mean ± std over runs. The paper's "
             f"own AdaMimic row is not reproduced in this repository: compare with *{PAPER_TITLE}*, whose table "
             "this layout follows.", ""]
+    seeds = root / "reports" / task / "seeds.json"
+    if seeds.is_file():  # the report stage's spread over training seeds (extra_seeds)
+        out += [seeds_table(read_seeds(seeds), heading="###").strip(), "",
+                f"From [`{seeds.relative_to(root).as_posix()}`]({_link(root, seeds, page.parent)}).", ""]
     for e in entries:
         if e.metrics.get("endings"):
             out += [f"{e.variant}. {endings_line(e.metrics['endings'])}", ""]
