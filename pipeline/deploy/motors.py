@@ -1,7 +1,7 @@
 """The 29-DoF G1's motor order and the mapping of an exported policy's joints onto it.
 
-The `unitree_hg` messages carry 35 motor slots; a 29-DoF G1 uses the first 29 in the order below
-(Unitree's published G1 joint indices). Our model locks the waist roll and pitch (the policy has 27
+The `unitree_hg` messages carry 35 motor slots; a 29-DoF G1 uses the first 29 in Unitree's published G1 joint order
+(`pipeline.motion.importers.UNITREE_G1_29DOF_JOINTS`, also the column order of the common G1 CSV). Our model locks the waist roll and pitch (the policy has 27
 joints), so those two motors are commanded to stay at zero.
 """
 
@@ -12,19 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.motion.importers import UNITREE_G1_29DOF_JOINTS
 
 NUM_MOTOR_SLOTS = 35
-G1_MOTOR_NAMES = (
-    "left_hip_pitch_joint", "left_hip_roll_joint", "left_hip_yaw_joint", "left_knee_joint",
-    "left_ankle_pitch_joint", "left_ankle_roll_joint",
-    "right_hip_pitch_joint", "right_hip_roll_joint", "right_hip_yaw_joint", "right_knee_joint",
-    "right_ankle_pitch_joint", "right_ankle_roll_joint",
-    "waist_yaw_joint", "waist_roll_joint", "waist_pitch_joint",
-    "left_shoulder_pitch_joint", "left_shoulder_roll_joint", "left_shoulder_yaw_joint", "left_elbow_joint",
-    "left_wrist_roll_joint", "left_wrist_pitch_joint", "left_wrist_yaw_joint",
-    "right_shoulder_pitch_joint", "right_shoulder_roll_joint", "right_shoulder_yaw_joint", "right_elbow_joint",
-    "right_wrist_roll_joint", "right_wrist_pitch_joint", "right_wrist_yaw_joint",
-)
+G1_MOTOR_NAMES = UNITREE_G1_29DOF_JOINTS  # the SDK's motor order
 NUM_MOTORS = len(G1_MOTOR_NAMES)
 LOCKED_AT_ZERO = ("waist_roll_joint", "waist_pitch_joint")
 # the locked joints are held with the gains of the nearest driven joint of the same actuator type

@@ -52,23 +52,22 @@ def sdk_types() -> types.SimpleNamespace:
                                  new_odometry=default.nav_msgs_msg_dds__Odometry_)
 
 
-def check_low_state(state) -> str | None:
-    """Why a LowState_ must be refused (wrong motor count, bad CRC), or None when it is sound."""
-    if len(state.motor_state) != NUM_MOTOR_SLOTS:
-        return f"has {len(state.motor_state)} motor states, the G1's LowState_ carries {NUM_MOTOR_SLOTS}"
-    crc = low_state_crc(state)
-    if crc != state.crc:
-        return f"CRC mismatch (message says {state.crc:#010x}, contents give {crc:#010x})"
+def _check(message, slots: list, what: str, crc_of) -> str | None:
+    """Why a unitree_hg message must be refused (wrong motor count, bad CRC), or None when it is sound."""
+    if len(slots) != NUM_MOTOR_SLOTS:
+        return f"has {len(slots)} motor {what}, the G1's {type(message).__name__} carries {NUM_MOTOR_SLOTS}"
+    crc = crc_of(message)
+    if crc != message.crc:
+        return f"CRC mismatch (message says {message.crc:#010x}, contents give {crc:#010x})"
     return None
+
+
+def check_low_state(state) -> str | None:
+    return _check(state, state.motor_state, "states", low_state_crc)
 
 
 def check_low_cmd(cmd) -> str | None:
-    if len(cmd.motor_cmd) != NUM_MOTOR_SLOTS:
-        return f"has {len(cmd.motor_cmd)} motor commands, the G1's LowCmd_ carries {NUM_MOTOR_SLOTS}"
-    crc = low_cmd_crc(cmd)
-    if crc != cmd.crc:
-        return f"CRC mismatch (message says {cmd.crc:#010x}, contents give {crc:#010x})"
-    return None
+    return _check(cmd, cmd.motor_cmd, "commands", low_cmd_crc)
 
 
 _DOMAINS: dict[int, tuple[object, str]] = {}
