@@ -300,8 +300,9 @@ def main() -> None:
                                       "time_limit_stage1_s": 0.0 if args.iterations else args.minutes * 60.0,
                                       "save_interval": args.snapshot_every if args.snapshots else 50,
                                       "keep_checkpoints": max(2, args.snapshots)}}
-    if args.envs:
+    if args.envs:  # the worlds of either stage-1 trainer (train.algorithm)
         overrides["train"]["ppo"] = {"num_envs": args.envs}
+        overrides["train"]["fast_td3"] = {"num_envs": args.envs}
     for item in args.set:
         set_dotted(overrides, item)
     cfg = TrainConfig.from_dict(overrides["train"])

@@ -366,3 +366,76 @@ def test_a_chunk_that_ends_in_stage1_does_not_start_stage2(tmp_path):
                     log=lambda *_: None)
     assert metrics["paused"] and metrics["iteration"] == 2
     assert not (tmp_path / "stage2").exists() and not (tmp_path / "stage1" / "policy").exists()
+
+
+# ------------------------------------------------------------------------------------------ on the TrackingEnv
+from test_env import data  # noqa: E402, F401  (the module fixture: a 61-frame standing clip, 3 keyframes)
+
+
+def test_the_observation_of_a_mirrored_state_is_the_mirror_of_the_observation(data):  # noqa: F811
+    """TrackingEnv's own observation code on a physics state and on its mirror image: the actor
+    observation and the critic's base velocity agree with Mirror's map of the original's."""
+    from pipeline.envs.config import EnvConfig
+    from pipeline.envs.tracking_env import TrackingEnv
+    from pipeline.rl.mirror import mirror_for_env
+
+    torch.manual_seed(0)
+    env = TrackingEnv(EnvConfig.from_dict({"observations": {"odometry_noise_std": 0.0}}), data, num_envs=2)
+    env.reset()
+    names = env.robot.joint_names
+    partner, sign = joint_mirror(names)
+    qpos = env.backend.qpos[0].clone().double()
+    qpos[:3] += torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    turn = torch.tensor([0.9, 0.1, -0.2, 0.3], dtype=torch.float64)
+    qpos[3:7] = turn / turn.norm()
+    qpos[7:] += 0.2 * torch.randn(len(names), dtype=torch.float64)
+    qvel = torch.randn(env.backend.qvel.shape[1], dtype=torch.float64)
+    mirrored_qvel = qvel.clone()
+    mirrored_qvel[:3] = qvel[:3] * torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64)   # world linear: polar
+    mirrored_qvel[3:6] = qvel[3:6] * torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64)  # body angular: axial
+    mirrored_qvel[6:] = sign.double() * qvel[6:][partner]
+    env.backend.set_state(torch.arange(2), torch.stack([qpos, qpos_mirror(qpos, names)]).to(env.backend.qpos.dtype),
+                          torch.stack([qvel, mirrored_qvel]).to(env.backend.qvel.dtype))
+    action = torch.randn(len(names))
+    env.prev_action = torch.stack([action, sign * action[partner]]).to(env.prev_action.dtype)
+    env.episode_step.zero_()
+    env.odom_origin.zero_()
+    env.odom_origin_quat[:] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    env.sample[:] = env.sample[0]
+    env.phase[:] = env.phase[0]
+    frame_obs, privileged, _ = env._frame_features(None)
+    mirror = mirror_for_env(env, env.action_dim)
+    frame_dim = frame_obs.shape[1]
+    actor = frame_obs.repeat(1, env.cfg.observations.history)  # every history slot: this frame
+    want = mirror.actor(actor[:1])[0, -frame_dim:]
+    assert torch.allclose(frame_obs[1], want, atol=1e-4), (frame_obs[1] - want).abs().max()
+    layout = env.obs_layout()["critic_privileged"]
+    critic = torch.cat([actor, privileged], -1)
+    start, stop = layout["base_lin_vel"]
+    assert torch.allclose(critic[1, start:stop], mirror.critic(critic[:1])[0, start:stop], atol=1e-4)
+
+
+def test_fast_td3_with_the_mirror_on_the_tracking_env_resumes_bit_for_bit(tmp_path, data):  # noqa: F811
+    from pipeline.envs.tracking_env import TrackingEnv
+    from test_env_resume import noisy_cfg
+
+    cfg = td3_cfg(save_interval=1, network={"actor_hidden": [32], "critic_hidden": [32]},
+                  fast_td3={"num_envs": 8, "steps_per_iteration": 6, "batch_size": 64, "buffer_size": 8 * 32,
+                            "mirror": True, "action_bound": 3.0})
+
+    def trainer(run_dir, seed):
+        torch.manual_seed(seed)
+        env = TrackingEnv(noisy_cfg(), data, num_envs=8)
+        return build_fast_td3_trainer(env, data, cfg, run_dir, env.dphi, tensorboard=False, progress=False,
+                                      log=lambda *_: None)
+
+    straight = trainer(tmp_path / "a", 0)
+    assert straight.buffer.actor_is_prefix and straight.td3.mirror is not None
+    straight.run(2)
+    trainer(tmp_path / "b", 0).run(1)
+    resumed = trainer(tmp_path / "b", 99)
+    resumed.run(2, resume=True)
+    for (k, a), b in zip(straight.policy.state_dict().items(), resumed.policy.state_dict().values()):
+        assert torch.equal(a, b), k
+    assert straight.history[-1]["critic_loss"] == resumed.history[-1]["critic_loss"]
+    assert straight.history[-1]["reward_dense"] == resumed.history[-1]["reward_dense"]
