@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from pipeline import REPO_ROOT
-from pipeline.common.cpu_kernels import OPT_OUT, PINNED_ENV, cpu_has_avx2_fma, pin_cpu_kernels
+from pipeline.common.cpu_kernels import (OPT_OUT, PINNED_ENV, cpu_has_avx2_fma, pin_cpu_kernels,
+                                         pinned_inductor_cache)
 
 # Runs in a fresh interpreter: `import pipeline` first, as every stage script does, so the kernel
 # switches are set before numpy and torch load.
@@ -96,7 +97,11 @@ def test_pin_sets_every_switch_and_overrides_a_machine_setting(tmp_path):
     if not cpu_has_avx2_fma(cpuinfo):
         pytest.skip("not an x86-64 machine")
     assert pin_cpu_kernels(environ, cpuinfo) is True
+    cache = environ.pop("TORCHINDUCTOR_CACHE_DIR")  # compiled kernels apart from unpinned runs' ones
+    assert cache == str(pinned_inductor_cache()) and cache.endswith("_avx2_pinned")
     assert environ == PINNED_ENV
+    named = {"TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "mine")}
+    assert pin_cpu_kernels(named, cpuinfo) is True and named["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine")
 
 
 def test_pin_leaves_a_cpu_without_avx2_and_the_opt_out_alone(tmp_path):

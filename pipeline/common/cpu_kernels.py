@@ -19,9 +19,11 @@ speed comparison of kernels would want).
 
 from __future__ import annotations
 
+import getpass
 import os
 import platform
 import sys
+import tempfile
 from collections.abc import MutableMapping
 from pathlib import Path
 
@@ -63,7 +65,20 @@ def pin_cpu_kernels(environ: MutableMapping[str, str] | None = None, cpuinfo: Pa
     if environ.get(OPT_OUT, "") not in ("", "0") or not cpu_has_avx2_fma(cpuinfo):
         return False
     environ.update(PINNED_ENV)
+    # torch.compile's on-disk kernel cache is not keyed on ATEN_CPU_CAPABILITY: a CPU kernel compiled
+    # for the CPU's own ISA by an unpinned run was reused under the pin and computed NaNs. Pinned runs
+    # therefore keep a cache of their own (unless one is named).
+    environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(pinned_inductor_cache()))
     return True
+
+
+def pinned_inductor_cache() -> Path:
+    """Where pinned runs keep torch.compile's kernels: beside inductor's default, one per user."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (a bare container)
+        user = str(os.getuid())
+    return Path(tempfile.gettempdir()) / f"torchinductor_{user}_{PINNED_ENV['ATEN_CPU_CAPABILITY']}_pinned"
 
 
 def loaded_too_early() -> list[str]:
