@@ -155,8 +155,6 @@ def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resum
 
 
 def _extra_seed(params: PipelineConfig, args) -> int:
-    from pipeline.common.errors import PipelineInputError
-
     if args.seed is None or args.seed not in params.extra_seeds:
         raise PipelineInputError(params.path, "extra_seeds",
                                  f"--seed {args.seed} is not one of the extra seeds {list(params.extra_seeds)}")
@@ -171,12 +169,17 @@ def run_train_seed(params: PipelineConfig, args) -> None:
     seed = _extra_seed(params, args)
     cfg = dataclasses.replace(_train_config(params, args.variant), seed=seed)
     model_dir = paths.seed_model_dir(args.task, args.variant, seed)
-    data = _tracking_data(params, args.task, args.variant)
-    stage1 = train_stage1(data, params.env, cfg, model_dir / "stage1", resume=args.resume, chunk_s=_chunk_s(args))
-    if stage1.get("paused"):
-        _finish_training(stage1)
+    stage1_dir = model_dir / "stage1"
+    if args.resume and (stage1_dir / "metrics.json").is_file() and (stage1_dir / "policy" / "config.json").is_file():
+        # stage 1 finished in an earlier chunk: resuming it would rewrite the policy stage 2 trains on
+        stage1 = json.loads((stage1_dir / "metrics.json").read_text())
+    else:
+        data = _tracking_data(params, args.task, args.variant)
+        stage1 = train_stage1(data, params.env, cfg, stage1_dir, resume=args.resume, chunk_s=_chunk_s(args))
+        if stage1.get("paused"):
+            _finish_training(stage1)
     final = _train_stage2_into(params, args, cfg, model_dir, resume=args.resume)
-    print(json.dumps({"seed": seed, "stage1": stage1, "final": final}, indent=1, default=float))
+    _finish_training({"seed": seed, "stage1": stage1, "final": final, "paused": bool(final.get("paused"))})
 
 
 def run_evaluate(params: PipelineConfig, args) -> None:

@@ -53,3 +53,26 @@ def test_a_chunk_must_last(trainer_calls, capsys, minutes):
     assert bad.value.code == 2
     assert "--chunk-minutes: must be > 0" in capsys.readouterr().err
     assert trainer_calls[0] == []  # refused before training started
+
+
+def test_train_seed_pauses_in_stage_2_and_resumes_without_retraining_stage_1(trainer_calls, monkeypatch, tmp_path):
+    calls, answers = trainer_calls
+    monkeypatch.setattr(stages.paths, "seed_model_dir", lambda task, variant, seed: tmp_path / str(seed))
+    stage2 = []
+    monkeypatch.setattr(stages, "_train_stage2_into",
+                        lambda params, args, cfg, model_dir, resume=False: stage2.append((cfg.seed, resume))
+                        or stage2_answers.pop(0))
+    stage2_answers = [{"paused": True}, {"iterations": 150}]
+    answers.append({"iterations": 280})
+    argv = ["--task", "far_jump_sample", "--variant", "adamimic", "--seed", "1", "--chunk-minutes", "1"]
+    with pytest.raises(SystemExit) as paused:  # stage 1 done, the chunk ran out inside stage 2
+        stage_main(stages.run_train_seed, argv=argv)
+    assert paused.value.code == EXIT_PAUSED and len(calls) == 1 and stage2 == [(1, False)]
+
+    finished = tmp_path / "1" / "stage1"  # what the finished stage 1 left
+    (finished / "policy").mkdir(parents=True)
+    (finished / "policy" / "config.json").write_text("{}")
+    (finished / "metrics.json").write_text('{"iterations": 280}')
+    stage_main(stages.run_train_seed, argv=argv + ["--resume"])
+    assert len(calls) == 1, "a finished stage 1 must not be trained (or rewritten) again"
+    assert stage2 == [(1, False), (1, True)]
