@@ -416,3 +416,33 @@ def test_key_go_counts_only_an_enter_pressed_once_armed():
     os.write(write, b"\n")
     _wait(go)
     os.close(write)
+
+
+def test_odometry_from_a_topic_that_stops_reads_as_none(monkeypatch):
+    """A frozen odometry node must not feed the policy a held position: past max_age_s the pose is gone,
+    and Odometry.read raises, which the controller turns into damping."""
+    from types import SimpleNamespace as NS
+
+    from pipeline.deploy.odometry import Odometry, TopicPose
+
+    half_turn = np.sqrt(0.5)  # 90° of yaw
+    message = NS(pose=NS(pose=NS(position=NS(x=1.0, y=2.0, z=0.8),
+                                 orientation=NS(w=half_turn, x=0.0, y=0.0, z=half_turn))))
+    inbox = [[message]]
+    reader = NS(take=lambda N: inbox.pop(0) if inbox else [])
+    link = NS(reader=lambda topic, kind: reader, types=NS(Odometry=object))
+    now = [100.0]
+    monkeypatch.setattr(time, "monotonic", lambda: now[0])
+
+    source = TopicPose(link, "rt/odometry", max_age_s=0.5)
+    position, yaw = source.pose()
+    np.testing.assert_allclose(position, [1.0, 2.0, 0.8])
+    assert yaw == pytest.approx(np.pi / 2)
+    odometry = Odometry(source)
+    odometry.start()
+    now[0] += 0.4
+    np.testing.assert_allclose(odometry.read(), [0.0, 0.0, 0.0], atol=1e-12)  # still fresh
+    now[0] += 0.2
+    assert source.pose() is None
+    with pytest.raises(RuntimeError, match="none fresh"):
+        odometry.read()

@@ -8,12 +8,13 @@ export's `rate_hz` and holds it in between (`PolicyStepper`), as in training.
 
 from __future__ import annotations
 
+import time
 from typing import Callable, Protocol
 
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.export.policy_step import rotate_z
+from pipeline.export.policy_step import rotate_z, yaw_of
 
 
 class PoseSource(Protocol):
@@ -30,21 +31,22 @@ class CallablePose:
 
 
 class TopicPose:
-    """The newest nav_msgs Odometry_ on a topic of a `DdsLink`."""
+    """The newest nav_msgs Odometry_ on a topic of a `DdsLink`, while it is fresh: a pose older than
+    `max_age_s` (five periods of 10 Hz lidar odometry) reads as none, so a frozen odometry node sends
+    the controller to damping instead of feeding the policy a held position."""
 
-    def __init__(self, link, topic: str):
+    def __init__(self, link, topic: str, max_age_s: float = 0.5):
         from pipeline.deploy.transport import CheckedReader
 
-        self.topic = topic
+        self.topic, self.max_age_s = topic, max_age_s
         self.reader = CheckedReader(link.reader(topic, link.types.Odometry), None)
 
     def pose(self):
         received = self.reader.poll()
-        if received is None:
+        if received is None or time.monotonic() - received.time > self.max_age_s:
             return None
         p, q = received.message.pose.pose.position, received.message.pose.pose.orientation
-        yaw = float(np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)))
-        return np.array([p.x, p.y, p.z], dtype=np.float64), yaw
+        return np.array([p.x, p.y, p.z], dtype=np.float64), yaw_of((q.w, q.x, q.y, q.z))
 
 
 class Odometry:
@@ -63,7 +65,7 @@ class Odometry:
     def read(self) -> np.ndarray:
         pose = self.source.pose()
         if pose is None or self.origin is None:
-            raise RuntimeError("odometry: no pose received")
+            raise RuntimeError("odometry: no pose received, or none fresh")
         return rotate_z(pose[0] - self.origin[0], -self.origin[1])
 
 
