@@ -155,6 +155,16 @@ def test_the_spread_over_training_seeds_comes_from_the_report(made_up_repo):
     with pytest.raises(PipelineInputError) as error:
         write_results_page(root)
     assert error.value.source == str(seeds) and error.value.field == "adamimic"
+    truncated = seed_summary(by_seed)
+    del truncated["ranges"]["hard"]["success_per_seed"]["2"]
+    seeds.write_text(json.dumps({"adamimic": truncated}))
+    for image in [p for p in (root / "docs" / "img" / "results").rglob("*") if p.is_file()]:
+        image.unlink()
+    with pytest.raises(PipelineInputError) as error:
+        write_results_page(root)
+    assert error.value.field == "adamimic.ranges.hard.success_per_seed"
+    assert not any(p.is_file() for p in (root / "docs" / "img" / "results").rglob("*"))  # read before writing
+    assert (root / "docs" / "results.md").read_text() == page  # the last good page stays
 
 
 @pytest.mark.parametrize("breakage, field", [

@@ -82,7 +82,8 @@ def read_metrics(path: Path) -> dict:
 
 
 def read_seeds(path: Path) -> dict:
-    """reports/<task>/seeds.json of the report stage: {variant: {seeds, ranges}}, checked for what the page uses."""
+    """reports/<task>/seeds.json of the report stage, {variant: {seeds, ranges}}, checked for every field the
+    page's seeds table reads."""
     try:
         doc = json.loads(path.read_text())
     except json.JSONDecodeError as error:
@@ -90,9 +91,19 @@ def read_seeds(path: Path) -> dict:
     if not isinstance(doc, dict) or not doc:
         raise PipelineInputError(path, None, "must be a non-empty JSON object, one entry per variant")
     for variant, summary in doc.items():
-        if not isinstance(summary, dict) or not isinstance(summary.get("seeds"), list) \
+        if not isinstance(summary, dict) or not isinstance(summary.get("seeds"), list) or not summary["seeds"] \
                 or not isinstance(summary.get("ranges"), dict):
             raise PipelineInputError(path, variant, "needs its `seeds` list and `ranges`")
+        for name, stats in summary["ranges"].items():
+            where = f"{variant}.ranges.{name}"
+            per_seed = stats.get("success_per_seed") if isinstance(stats, dict) else None
+            if not isinstance(per_seed, dict) or any(str(seed) not in per_seed for seed in summary["seeds"]):
+                raise PipelineInputError(path, f"{where}.success_per_seed", "missing a seed's success")
+            for key in ("success_mean", "success_min", "success_max"):
+                if not isinstance(stats.get(key), (int, float)):
+                    raise PipelineInputError(path, f"{where}.{key}", "missing or not a number")
+            if stats.get("success_std") is not None and not isinstance(stats["success_std"], (int, float)):
+                raise PipelineInputError(path, f"{where}.success_std", "not a number")
     return doc
 
 
@@ -112,15 +123,24 @@ def read_per_psi(path: Path) -> list[dict]:
     return rows
 
 
-def _evaluated(folder: Path, task: str, variant: str) -> Evaluated:
-    metrics = read_metrics(folder / "metrics.json")
+def _evaluated(folder: Path, task: str, variant: str, metrics: dict | None = None) -> Evaluated:
+    metrics = read_metrics(folder / "metrics.json") if metrics is None else metrics
     csv_path = folder / "per_psi.csv"
     return Evaluated(task=task, variant=variant, folder=folder, metrics=metrics,
                      per_psi=read_per_psi(csv_path) if csv_path.is_file() else [])
 
 
-def find_results(root: Path) -> tuple[list[Evaluated], list[Evaluated], list[Recipe]]:
-    """(evaluated under results/, evaluated under models/pretrained/, recipes with no policy yet)."""
+@dataclass
+class Found:
+    """Everything the page reads, read and checked before anything is written."""
+
+    results: list[Evaluated]  # under results/
+    pretrained: list[Evaluated]  # under models/pretrained/
+    recipes: list[Recipe]  # models/pretrained/ folders with no policy yet
+    seeds: dict[str, dict]  # task -> reports/<task>/seeds.json (the spread over training seeds)
+
+
+def find_results(root: Path) -> Found:
     results = [_evaluated(path.parent, path.parent.parent.name, path.parent.name)
                for path in sorted((root / "results").glob("*/*/metrics.json"))]
     pretrained, recipes = [], []
@@ -131,8 +151,10 @@ def find_results(root: Path) -> tuple[list[Evaluated], list[Evaluated], list[Rec
         for path in found:
             doc = read_metrics(path)
             variant = doc.get("variant") or (path.parent.name if path.parent != folder else "adamimic")
-            pretrained.append(_evaluated(path.parent, doc.get("task") or folder.name, variant))
-    return results, pretrained, recipes
+            pretrained.append(_evaluated(path.parent, doc.get("task") or folder.name, variant, doc))
+    seeds = {task: read_seeds(path) for task in sorted({e.task for e in results})
+             if (path := root / "reports" / task / "seeds.json").is_file()}
+    return Found(results, pretrained, recipes, seeds)
 
 
 # ------------------------------------------------------------------------------------------ images
@@ -272,7 +294,8 @@ def _link(root: Path, target: Path, page_dir: Path) -> str:
     return Path(os.path.relpath(target, page_dir)).as_posix()
 
 
-def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list[Evaluated], origin: str) -> list[str]:
+def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list[Evaluated], origin: str,
+                 seeds: dict | None = None) -> list[str]:
     """Markdown for one task, writing its images under img_dir/<task>/."""
     first = entries[0].metrics
     out = [f"## {task}", ""]
@@ -290,10 +313,10 @@ def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list
     out += ["", "Succ. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s², mean ± std over runs. The paper's "
             f"own AdaMimic row is not reproduced in this repository: compare with *{PAPER_TITLE}*, whose table "
             "this layout follows.", ""]
-    seeds = root / "reports" / task / "seeds.json"
-    if seeds.is_file():  # the report stage's spread over training seeds (extra_seeds)
-        out += [seeds_table(read_seeds(seeds), heading="###").strip(), "",
-                f"From [`{seeds.relative_to(root).as_posix()}`]({_link(root, seeds, page.parent)}).", ""]
+    if seeds is not None:  # the report stage's spread over training seeds (extra_seeds)
+        source = root / "reports" / task / "seeds.json"
+        out += [seeds_table(seeds, heading="###").strip(), "",
+                f"From [`{source.relative_to(root).as_posix()}`]({_link(root, source, page.parent)}).", ""]
     for e in entries:
         if e.metrics.get("endings"):
             out += [f"{e.variant}. {endings_line(e.metrics['endings'])}", ""]
@@ -332,8 +355,8 @@ def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list
     return out
 
 
-def render_page(root: Path, page: Path, img_dir: Path) -> str:
-    results, pretrained, recipes = find_results(root)
+def render_page(root: Path, page: Path, img_dir: Path, found: Found) -> str:
+    results, pretrained, recipes = found.results, found.pretrained, found.recipes
     out = ["# Results", "",
            "Every evaluated policy in this repository: per task, the table in the paper's layout, success "
            "against ψ, the keyframes and one rollout. Generated by "
@@ -344,7 +367,8 @@ def render_page(root: Path, page: Path, img_dir: Path) -> str:
     for e in results:
         by_task.setdefault(e.task, []).append(e)
     for task, entries in by_task.items():
-        out += task_section(root, page, img_dir, task, entries, "Trained by `dvc repro` (`params.yaml`)")
+        out += task_section(root, page, img_dir, task, entries, "Trained by `dvc repro` (`params.yaml`)",
+                            found.seeds.get(task))
     pre_by_task: dict[str, list[Evaluated]] = {}
     for e in pretrained:
         pre_by_task.setdefault(e.task, []).append(e)
@@ -371,8 +395,7 @@ def write_results_page(root: str | Path = ".", out: str | Path = "docs/results.m
     root = Path(root).resolve()
     page = (root / out).resolve()
     images = (root / img_dir).resolve()
-    find_results(root)  # validate every input before the first write
-    text = render_page(root, page, images)
+    text = render_page(root, page, images, find_results(root))  # every input is read before the first write
     write_text_atomic(page, text)
     return page
 
