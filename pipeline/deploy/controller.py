@@ -103,7 +103,7 @@ class G1Controller:
         self.state_reader, self.cmd_writer, self.sdk = state_reader, cmd_writer, sdk
         self.go, self.lockstep, self.on_tick, self.log = go, lockstep, on_tick, log
         self.dt = float(self.meta["control_dt"])
-        self.max_policy_steps = int(np.ceil(4.0 / self.stepper.phase_rate))  # as sim2sim
+        self.max_policy_steps = self.stepper.max_steps  # as sim2sim
         self.cmd = sdk.new_low_cmd()
         self.mode = Mode.DAMPING
         self.tick = 0

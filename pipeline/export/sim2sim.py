@@ -22,8 +22,7 @@ import mujoco
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.export.policy_step import (METADATA_NAME, ObservationBuilder, PolicyStepper,  # noqa: F401
-                                         projected_gravity, rotate_z, yaw_of)
+from pipeline.export.policy_step import METADATA_NAME, PolicyStepper, projected_gravity, rotate_z, yaw_of
 
 ONNX_NAME = "policy.onnx"
 
@@ -277,21 +276,15 @@ class Sim2Sim:
         self.decimation = int(round(m["control_dt"] / m["sim_dt"]))
         self.default_joint_pos = np.asarray(m["default_joint_pos"])
         self.phase_rate = self.stepper.phase_rate
-        self.offset_bounds = self.stepper.offset_bounds
         kf = m["keyframes"]
         self.keyframe_phases = np.asarray(kf["phases"])
         self.keyframe_body_pos = np.asarray(kf["body_pos"])  # (K, B, 3)
         self.keyframe_grid = kf["psi_grid"]
         self.keyframe_offsets = np.asarray(kf["offsets"])  # (G, K, 3)
-        self.obs = self.stepper.obs
-        self.threshold = float(m.get("success_threshold_m", 1.0))
 
     def keyframe_targets(self, psi: float) -> np.ndarray:
         offsets = _interp_grid(self.keyframe_grid, self.keyframe_offsets, psi)  # (K, 3)
         return self.keyframe_body_pos + offsets[:, None, :]
-
-    def policy(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        return self.stepper.run(obs)
 
     def run_episode(self, psi: float, *, max_steps: int | None = None,
                     on_step: Callable[[mujoco.MjModel, mujoco.MjData, dict], None] | None = None,
@@ -316,7 +309,7 @@ class Sim2Sim:
         start_pos = data.qpos[0:3].copy()
         start_yaw = yaw_of(data.qpos[3:7])
         phases, offsets = [], []
-        limit = max_steps or int(np.ceil(4.0 / self.phase_rate))  # phase may slow down to 0.25×
+        limit = max_steps or self.stepper.max_steps
         stepper = self.stepper
         stepper.reset()
         end = "max_steps"
