@@ -36,23 +36,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import learn_cpu  # noqa: E402  (its data building, evaluation and --set parsing)
 
 
-def clip_data(task, segment_s: float | None):
-    """D_edit on the task's clip: `segment_s` from 0.5 s before take-off (learn_cpu's cut) or, None, the whole clip."""
-    from pipeline.keyframes.edit import build_tracking_data
-    from pipeline.keyframes.select import select_keyframes
-
-    if segment_s is not None:
-        segment, span = learn_cpu.jump_segment(task, segment_s)
-    else:
-        from pipeline.human.importers import load_human_motion
-        from pipeline.retarget import RetargetConfig, retarget
-
-        segment, _ = retarget(load_human_motion(task.input_path(ROOT)), RetargetConfig(), fps_out=50, progress=False)
-        span = (0, segment.num_frames, segment.num_frames)
-    keyframes = select_keyframes(segment, task)
-    return build_tracking_data(segment, task, keyframes, mode="edit", num_samples=64, seed=0), keyframes, span
-
-
 def row_at(history: list[dict], key: str, value: float) -> dict | None:
     """The last history row whose `key` is <= value."""
     rows = [h for h in history if h[key] <= value]
@@ -92,7 +75,7 @@ def main() -> None:
     if args.input is not None:
         task = dataclasses.replace(task, input=str(args.input.resolve()))
     t0 = time.time()
-    data, keyframes, (start, stop, total) = clip_data(task, None if args.whole else args.segment)
+    data, keyframes, (start, stop, total) = learn_cpu.segment_data(task, None if args.whole else args.segment)
     label = "whole clip from t = 0" if args.whole else f"{args.segment:g} s from 0.5 s before take-off"
     print(f"[compare] {args.motion}, {label}: frames {start}..{stop} of {total}; keyframes {keyframes.frames.tolist()}; "
           f"prepared in {time.time() - t0:.0f} s", flush=True)

@@ -64,15 +64,18 @@ def paper_task(motion_name: str):
     return tasks[motion_name]
 
 
-def jump_segment(task, segment_s: float):
+def jump_segment(task, segment_s: float | None):
     """The task's clip retargeted to the G1 at 50 fps, cut to `segment_s` from 0.5 s before its first
-    take-off (or from the start when it has no flight). Returns (segment, (start, stop, frames))."""
+    take-off (or from the start when it has no flight); None: the whole clip. Returns (segment, (start,
+    stop, frames))."""
     from pipeline.human.importers import load_human_motion
     from pipeline.keyframes.select import select_keyframes
     from pipeline.retarget import RetargetConfig, retarget
 
     human = load_human_motion(task.input_path(ROOT))
     motion, _ = retarget(human, RetargetConfig(), fps_out=50, progress=False)
+    if segment_s is None:
+        return motion, (0, motion.num_frames, motion.num_frames)
     full = select_keyframes(motion, task)
     if full.flights:
         takeoff, landing = full.flights[0]
@@ -86,8 +89,6 @@ def jump_segment(task, segment_s: float):
 def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, float] | None = None,
                keyframe_spacing: float | None = None, motion_name: str = "far_jump", flat_ground: bool = False):
     from pipeline.keyframes.config import TerrainConfig
-    from pipeline.keyframes.edit import build_tracking_data
-    from pipeline.keyframes.select import select_keyframes
 
     task = paper_task(motion_name)
     if psi_range is not None:
@@ -97,6 +98,14 @@ def build_data(segment_s: float, num_samples: int = 64, psi_range: tuple[float, 
         task = dataclasses.replace(task, keyframes=spacing)
     if flat_ground:
         task = dataclasses.replace(task, terrain=TerrainConfig(kind="flat"))
+    return segment_data(task, segment_s, num_samples)
+
+
+def segment_data(task, segment_s: float | None, num_samples: int = 64):
+    """D_edit on `jump_segment(task, segment_s)`: (tracking data, keyframes, span)."""
+    from pipeline.keyframes.edit import build_tracking_data
+    from pipeline.keyframes.select import select_keyframes
+
     segment, span = jump_segment(task, segment_s)
     keyframes = select_keyframes(segment, task)
     data = build_tracking_data(segment, task, keyframes, mode="edit", num_samples=num_samples, seed=0)
