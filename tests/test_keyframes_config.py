@@ -77,6 +77,9 @@ def test_selectors_and_ranges_helpers():
     ({"push_prior": {"enabled": True, "iterations": 0}}, "push_prior.iterations", ">= 1"),
     ({"push_prior": {"enabled": True, "land_by_slack_s": -0.1}}, "push_prior.land_by_slack_s", "[0, 0.5]"),
     ({"push_prior": {"enabled": True, "land_by_slack_s": "late"}}, "push_prior.land_by_slack_s", "seconds"),
+    ({"clip": {"start_s": -1.0}}, "clip.start_s", ">= 0"),
+    ({"clip": {"start_s": 2.0, "end_s": 1.5}}, "clip.end_s", "after clip.start_s"),
+    ({"clip": {"from": 1.0}}, "clip", "unknown key"),
     ({"colour": "red"}, "", "unknown key"),
 ])
 def test_bad_task_names_task_and_field(changes, field, words):
@@ -142,3 +145,33 @@ def test_the_far_jump_gpu_recipe_loads_and_points_at_the_shared_clip():
     assert (params.path.parent / task.input).resolve() == (root.parent / "shared/data/adamimic_smpl/far_jump.npz").resolve()
     assert task.psi.raw == 1.1 and task.terrain.kind == "gap"
     assert task.push_prior.enabled  # every CPU run that learnt the far jump trained on one
+
+
+def test_clip_window_cuts_the_keyframes_stage_outputs(jump, tmp_path):
+    """`clip` keeps the window's frames only: keyframes, D_edit and the table's times count from its start,
+    and the table records where the window sits in the clip."""
+    import json
+
+    from pipeline.keyframes.datasets import load_tracking_data
+    from pipeline.keyframes.outputs import build_task_outputs
+
+    whole = build_task_outputs(jump, _task(), tmp_path / "whole", num_samples=2, seed=0, video=False)
+    cut = build_task_outputs(jump, _task(clip={"start_s": 0.5, "end_s": 2.0}), tmp_path / "cut", num_samples=2,
+                             seed=0, video=False)
+    table, whole_table = (json.loads(Path(p["keyframes"]).read_text()) for p in (cut, whole))
+    assert table["clip"] == {"start_s": 0.5, "end_s": 2.0, "frames": [25, 101]} and "clip" not in whole_table
+    data = load_tracking_data(cut["d_edit"])
+    assert data.motion.num_frames == 76
+    assert data.motion.root_pos[0] == pytest.approx(jump.root_pos[25])
+    takeoff = dict(zip(whole_table["labels"], whole_table["times"]))["takeoff"]
+    assert dict(zip(table["labels"], table["times"]))["takeoff"] == pytest.approx(takeoff - 0.5, abs=0.03)
+
+
+def test_clip_window_past_the_clip_end_is_refused_before_any_write(jump, tmp_path):
+    from pipeline.keyframes.outputs import build_task_outputs
+
+    with pytest.raises(PipelineInputError) as err:
+        build_task_outputs(jump, _task(clip={"start_s": 1.0, "end_s": 3.0}), tmp_path / "out", num_samples=2,
+                           video=False)
+    assert err.value.source == "task t1" and err.value.field == "clip.end_s" and "2.50 s" in err.value.problem
+    assert not (tmp_path / "out").exists()

@@ -122,6 +122,31 @@ class TerrainConfig:
 
 
 @dataclass(frozen=True)
+class ClipWindow:
+    """The seconds of the (retargeted) clip a task trains on: `clip: {start_s, end_s}`.
+
+    A long take trains on its interesting part (the jump, not the walk to it): every later stage sees
+    only the window, and times elsewhere in the task (listed keyframes, flights) count from its start.
+    `end_s` None: to the clip's end.
+    """
+
+    start_s: float = 0.0
+    end_s: float | None = None
+
+    def frames(self, fps: float, num_frames: int, task: str) -> tuple[int, int]:
+        """The window as a slice [start, stop) of a clip with `num_frames` frames at `fps`."""
+        duration = (num_frames - 1) / fps
+        start = int(round(self.start_s * fps))
+        stop = num_frames if self.end_s is None else int(round(self.end_s * fps)) + 1
+        if self.end_s is not None and self.end_s > duration + 0.5 / fps:
+            raise _err(task, "clip.end_s", f"{self.end_s} s is past the clip's end ({duration:.2f} s)")
+        if stop - start < 2:
+            raise _err(task, "clip.start_s", f"{self.start_s} s leaves fewer than 2 frames of the "
+                       f"{duration:.2f} s clip")
+        return start, stop
+
+
+@dataclass(frozen=True)
 class TaskConfig:
     name: str
     input: str
@@ -133,6 +158,7 @@ class TaskConfig:
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     num_samples: int = 64
     push_prior: PushPriorConfig = field(default_factory=PushPriorConfig)  # priors/push_prior.py
+    clip: ClipWindow = field(default_factory=ClipWindow)
 
     # ------------------------------------------------------------------------------ helpers
     def input_path(self, root: str | Path = ".") -> Path:
@@ -378,7 +404,20 @@ def _parse_terrain(name: str, raw) -> TerrainConfig:
     )
 
 
-_TASK_KEYS = {"input", "keyframes", "edit", "psi", "sparse_scale", "terrain", "num_samples", "push_prior"}
+_TASK_KEYS = {"input", "keyframes", "edit", "psi", "sparse_scale", "terrain", "num_samples", "push_prior", "clip"}
+
+
+def _parse_clip(name: str, raw) -> ClipWindow:
+    if raw is None:
+        return ClipWindow()
+    _check_keys(name, "clip", raw, {"start_s", "end_s"})
+    start = _number(name, "clip.start_s", raw.get("start_s", 0.0), nonneg=True)
+    end = raw.get("end_s")
+    if end is not None:
+        end = _number(name, "clip.end_s", end, positive=True)
+        if end <= start:
+            raise _err(name, "clip.end_s", f"must be after clip.start_s ({start} s), got {end}")
+    return ClipWindow(start, end)
 
 
 def _parse_push_prior(name: str, raw, edit: EditConfig) -> PushPriorConfig:
@@ -427,6 +466,7 @@ def _parse_task(name: str, raw: dict) -> TaskConfig:
     large_sel = None if large_kf == "semantic" else _selectors(name, "sparse_scale.keyframes", large_kf)
 
     push_prior = _parse_push_prior(name, raw.get("push_prior"), edit)
+    clip = _parse_clip(name, raw.get("clip"))
 
     num = raw.get("num_samples", 64)
     if isinstance(num, bool) or not isinstance(num, int) or num < 1:
@@ -439,7 +479,7 @@ def _parse_task(name: str, raw: dict) -> TaskConfig:
                     raise _err(name, fld, f"edited keyframe {s!r} does not exist in the keyframe list")
     return TaskConfig(name=name, input=inp, edit=edit, psi=psi, keyframes=keyframes, large_scale=large,
                       large_scale_keyframes=large_sel, terrain=terrain, num_samples=num,
-                      push_prior=push_prior)
+                      push_prior=push_prior, clip=clip)
 
 
 def _selector_hits(selector: Selector, time: float, label: str, tol: float = 1e-6) -> bool:

@@ -1,4 +1,5 @@
-"""Everything the keyframes stage writes for one task, from its (retargeted, 50 fps) motion:
+"""Everything the keyframes stage writes for one task, from its (retargeted, 50 fps) motion cut to the task's
+`clip` window:
 D_edit, D_rule (LeRobot layout), the keyframe table (json), the figure (png) and the D_rule video.
 All checks (keyframes, edits, terrain) run before the first write."""
 
@@ -19,6 +20,10 @@ from pipeline.motion.motion import Motion
 def build_task_outputs(motion: Motion, task: TaskConfig, out_dir: str | Path, num_samples: int | None = None,
                        seed: int | None = None, video: bool = True) -> dict[str, Path]:
     out_dir = Path(out_dir)
+    start, stop = task.clip.frames(motion.fps, motion.num_frames, task.name)
+    window = {} if task.clip == type(task.clip)() else {
+        "clip": {"start_s": start / motion.fps, "end_s": (stop - 1) / motion.fps, "frames": [start, stop]}}
+    motion = motion.slice(start, stop)
     table = select_keyframes(motion, task)
     edit = build_tracking_data(motion, task, table, "edit", num_samples, seed)
     rule = build_tracking_data(motion, task, table, "rule", num_samples, seed)
@@ -26,7 +31,7 @@ def build_task_outputs(motion: Motion, task: TaskConfig, out_dir: str | Path, nu
              "figure": out_dir / "keyframes.png"}
     write_tracking_dataset(paths["d_edit"], edit)
     write_tracking_dataset(paths["d_rule"], rule)
-    write_text_atomic(paths["keyframes"], json.dumps({"task": task.name, **table.to_dict(), "terrain": edit.terrain},
+    write_text_atomic(paths["keyframes"], json.dumps({"task": task.name, **window, **table.to_dict(), "terrain": edit.terrain},
                                                      indent=1))
     keyframe_figure(edit, paths["figure"], flights=list(table.flights))
     if video:
