@@ -8,6 +8,7 @@ stderr and exit code 2 (nothing half-written: every stage writes its outputs ato
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Callable
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> None:
         elif args.command == "sim2sim":
             from pipeline.export.sim2sim import run_sim2sim
 
-            print(run_sim2sim(args.policy, psi_values=args.psi))
+            print(json.dumps(run_sim2sim(args.policy, psi_values=args.psi), indent=1))
         elif args.command == "share":
             from pipeline.share import share
 
