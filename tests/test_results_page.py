@@ -67,6 +67,7 @@ def made_up_repo(tmp_path):
     _png(root / "data" / "keyframes" / "hop" / "keyframes.png")
     _video(root / "results" / "hop" / "adamimic" / "media" / "easy_psi0.75.mp4")
     _write_result(root / "models" / "pretrained" / "leap", _metrics("leap", "adamimic", 87.5, 50.0), None)
+    _png(root / "models" / "pretrained" / "leap" / "keyframes.png")  # its own figure: no data/keyframes/leap
     (root / "models" / "pretrained" / "recipe_only").mkdir(parents=True)
     (root / "models" / "pretrained" / "recipe_only" / "README.md").write_text("# a recipe\n")
     return root
@@ -107,6 +108,8 @@ def test_page_holds_each_task_table_plot_keyframes_and_rollout(made_up_repo):
     # the committed policy gets its own section without a plot (no per_psi.csv); the recipe is listed
     assert "## leap" in text and "| adamimic | 87.5 ± 1.2 |" in text
     assert "No `per_psi.csv` beside the metrics" in text
+    assert "Keyframes and their edits (`models/pretrained/leap/keyframes.png`)" in text
+    assert (root / "docs" / "img" / "results" / "leap" / "keyframes.png").is_file()
     assert "[`models/pretrained/recipe_only/README.md`](../models/pretrained/recipe_only/README.md)" in text
     assert "`leap`:" not in text  # a folder with metrics is not a recipe
 

@@ -5,7 +5,8 @@
 Reads, for each task:
   results/<task>/<variant>/metrics.json, per_psi.csv     (the evaluate stage)
   results/<task>/<variant>/media/*.mp4                   (its rollout videos, when present)
-  data/keyframes/<task>/keyframes.png                    (the keyframes stage's figure, when present)
+  data/keyframes/<task>/keyframes.png                    (the keyframes stage's figure, when present;
+                                                         a committed policy's own keyframes.png first)
   models/pretrained/<name>/[<variant>/]metrics.json      (committed policies; a folder without one is a recipe)
 and writes docs/results.md with, per task, the table in the paper's layout, a success-vs-ψ plot, the keyframe
 figure and a GIF of one rollout, the images under docs/img/results/<task>/.
@@ -331,7 +332,9 @@ def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list
         out += ["No `per_psi.csv` beside the metrics, so no success-vs-ψ plot.", ""]
 
     keyframes = task_img / "keyframes.png"
-    source = root / "data" / "keyframes" / task / "keyframes.png"
+    # A committed policy carries its own figure; a pipeline task's is the keyframes stage's output.
+    source = next((e.folder / "keyframes.png" for e in entries if (e.folder / "keyframes.png").is_file()),
+                  root / "data" / "keyframes" / task / "keyframes.png")
     if copy_keyframes_figure(source, keyframes) or keyframes.is_file():
         out += [f"Keyframes and their edits (`{source.relative_to(root).as_posix()}`):", "",
                 f"![keyframes, {task}]({_link(root, keyframes, page.parent)})", ""]
