@@ -21,9 +21,9 @@ def build_task_outputs(motion: Motion, task: TaskConfig, out_dir: str | Path, nu
                        seed: int | None = None, video: bool = True) -> dict[str, Path]:
     out_dir = Path(out_dir)
     start, stop = task.clip.frames(motion.fps, motion.num_frames, task.name)
-    window = {} if task.clip == type(task.clip)() else {
-        "clip": {"start_s": start / motion.fps, "end_s": (stop - 1) / motion.fps, "frames": [start, stop]}}
+    window = {}
     if (start, stop) != (0, motion.num_frames):  # a slice renormalises quaternions: the whole clip stays as read
+        window = {"clip": {"start_s": start / motion.fps, "end_s": (stop - 1) / motion.fps, "frames": [start, stop]}}
         motion = motion.slice(start, stop)
     table = select_keyframes(motion, task)
     edit = build_tracking_data(motion, task, table, "edit", num_samples, seed)
