@@ -16,7 +16,7 @@ from pipeline.common.errors import PipelineInputError
 
 PROFILES = ("cpu", "gpu")
 PAPER_TASKS = Path(__file__).resolve().parent / "keyframes" / "paper_tasks.yaml"
-TOP_LEVEL_KEYS = ("profile", "variants", "extra_seeds", "retarget", "tasks", "env", "train", "evaluate")
+TOP_LEVEL_KEYS = ("profile", "variants", "extra_seeds", "retarget", "tasks", "env", "train", "evaluate", "balance")
 
 
 @dataclass
@@ -33,6 +33,7 @@ class PipelineConfig:
     # Training seeds beside train.seed: each trains stage 1 + 2 and is evaluated like the main policy,
     # and the report gives success over all of them (mean, spread).
     extra_seeds: tuple[int, ...] = ()
+    balance: Any = None  # pipeline.balance.config.BalanceConfig: the policy every task's chain stands with
 
     @property
     def seeds(self) -> tuple[int, ...]:
@@ -82,6 +83,7 @@ def resolve_task_templates(tasks_raw: dict, path: Path) -> dict:
 
 
 def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
+    from pipeline.balance.config import BalanceConfig
     from pipeline.envs.config import EnvConfig
     from pipeline.evaluation.config import EvalConfig
     from pipeline.keyframes.config import load_tasks, load_yaml_strict
@@ -124,6 +126,7 @@ def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
         evaluate=EvalConfig.from_dict(_section(raw, "evaluate", path), where="evaluate"),
         raw=raw,
         extra_seeds=_extra_seeds(raw.get("extra_seeds", []), train.seed, path),
+        balance=BalanceConfig.from_dict(_section(raw, "balance", path), profile),
     )
 
 

@@ -18,7 +18,22 @@ LOWER_BODY = ("pelvis", "left_hip", "left_knee", "left_ankle", "right_hip", "rig
 
 
 @dataclass
-class RewardWeights:
+class PenaltyWeights:
+    """The regularisers every env pays in its dense group (`robot_env.PENALTY_TERMS`)."""
+
+    feet_orientation: float = -0.05
+    joint_acc: float = -2.5e-7
+    joint_vel: float = -5e-4
+    action_rate: float = -0.5
+    smoothness: float = -0.01
+    torques: float = -1e-6
+    torque_limits: float = -1.0
+    joint_pos_limits: float = -10.0
+    joint_vel_limits: float = -5.0
+
+
+@dataclass
+class RewardWeights(PenaltyWeights):
     # sparse group: paid only on the step that crosses a keyframe (termination: on the terminal step)
     global_body_pos: float = 10.0
     global_body_rot: float = 5.0
@@ -36,15 +51,6 @@ class RewardWeights:
     # fell before the landing (benchmarks/RESULTS.md, commit 9018155).
     root_tilt: float = 0.0
     root_ang_vel: float = 0.0
-    feet_orientation: float = -0.05
-    joint_acc: float = -2.5e-7
-    joint_vel: float = -5e-4
-    action_rate: float = -0.5
-    smoothness: float = -0.01
-    torques: float = -1e-6
-    torque_limits: float = -1.0
-    joint_pos_limits: float = -10.0
-    joint_vel_limits: float = -5.0
 
 
 @dataclass
@@ -98,10 +104,9 @@ class PenaltyCurriculum:
 
 
 @dataclass
-class RewardConfig:
-    weights: RewardWeights = field(default_factory=RewardWeights)
-    sigma2: KernelSigmas = field(default_factory=KernelSigmas)
-    lower_body: list[str] = field(default_factory=lambda: list(LOWER_BODY))
+class PenaltyConfig:
+    """What every env's penalties read besides their weights."""
+
     feet: list[str] = field(default_factory=lambda: ["left_ankle", "right_ankle"])
     soft_torque_limit: float = 0.95  # fraction of the effort limit where the torque penalty starts
     soft_joint_pos_limit: float = 0.95  # fraction of the joint range (about its centre)
@@ -110,6 +115,13 @@ class RewardConfig:
     # not change learning here: PPO normalises each group's advantages and the critics their returns.
     scale_by_dt: bool = False
     penalty_curriculum: PenaltyCurriculum = field(default_factory=PenaltyCurriculum)
+
+
+@dataclass
+class RewardConfig(PenaltyConfig):
+    weights: RewardWeights = field(default_factory=RewardWeights)
+    sigma2: KernelSigmas = field(default_factory=KernelSigmas)
+    lower_body: list[str] = field(default_factory=lambda: list(LOWER_BODY))
 
 
 @dataclass
