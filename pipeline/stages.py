@@ -207,6 +207,11 @@ def run_report(params: PipelineConfig, args) -> None:
     print(Path(table).read_text())
 
 
+def balance_export(params: PipelineConfig) -> Path:
+    """The committed balance policy's export every task's chain stands with (params.yaml `balance.out`)."""
+    return params.path.parent / params.balance.out / "export"
+
+
 def run_export(params: PipelineConfig, args) -> None:
     """Export the deployed policy (stage 1 + adapters) to ONNX + metadata in hub format."""
     from pipeline.export.onnx_export import export_variant
@@ -214,5 +219,5 @@ def run_export(params: PipelineConfig, args) -> None:
     data = _tracking_data(params, args.task, "adamimic")
     model_dir = paths.model_dir(args.task, args.variant)
     result = export_variant(task=args.task, variant=args.variant, data=data, policy_dir=model_dir / "final" / "policy",
-                            out_dir=model_dir / "export", env_cfg=params.env)
+                            out_dir=model_dir / "export", env_cfg=params.env, balance_export=balance_export(params))
     print(f"exported {result.onnx} (torch/onnxruntime max abs diff {result.parity_max_abs_diff:.2e})")

@@ -71,5 +71,11 @@ def export_balance(cfg: BalanceConfig, policy_dir: str | Path, out_dir: str | Pa
     if metadata["observation"]["dim"] != meta["actor_obs_dim"]:
         raise PipelineInputError(policy_dir / "config.json", "actor_obs_dim",
                                  f"{meta['actor_obs_dim']} does not match the balance layout ({metadata['observation']['dim']})")
-    deployed = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale)
+    from pipeline.envs.balance_env import balance_actuation
+
+    stance_target, action_scale = balance_actuation(cfg.env, robot)
+    metadata["action_scale"] = action_scale.tolist()
+    metadata["stance"]["joint_target"] = stance_target.tolist()
+    metadata["outputs"]["joint_targets"] = "stance.joint_target + action_scale * action (frozen joints: scale 0)"
+    deployed = DeployedPolicy(module, stance_target, action_scale)
     return export_folder(deployed, metadata["observation"]["dim"], metadata, out_dir, source_dir=policy_dir)

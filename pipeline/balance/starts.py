@@ -16,25 +16,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import mujoco
 import numpy as np
 
 from pipeline.common.atomic import atomic_file
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs.falls import fall_flags
+from pipeline.export.chain import ground_height_under
 from pipeline.export.policy_step import projected_gravity
-
-
-def ground_height_under(model: mujoco.MjModel, x: float, y: float) -> float:
-    """Top of the highest world geom under (x, y): planes everywhere, boxes within their extent."""
-    top = -np.inf
-    for g in np.flatnonzero(model.geom_bodyid == 0):
-        kind, pos, size = model.geom_type[g], model.geom_pos[g], model.geom_size[g]
-        if kind == mujoco.mjtGeom.mjGEOM_PLANE:
-            top = max(top, float(pos[2]))
-        elif kind == mujoco.mjtGeom.mjGEOM_BOX and abs(x - pos[0]) <= size[0] and abs(y - pos[1]) <= size[1]:
-            top = max(top, float(pos[2] + size[2]))
-    return top if np.isfinite(top) else 0.0
 
 
 def last_landing_phase(meta: dict) -> float:

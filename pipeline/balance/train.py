@@ -51,6 +51,6 @@ def train_balance(cfg: BalanceConfig, run_dir: str | Path, *, root: Path = Path(
     policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=False, phase_rate=nominal_phase_rate(env), normalize_obs=train.ppo.normalize_obs)
     critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, train.ppo.normalize_obs)
-    trainer = Trainer(env, policy, critic, train, run_dir, stage=1, meta=balance_meta(env, cfg), l2c2=True,
+    trainer = Trainer(env, policy, critic, train, run_dir, stage=1, meta=balance_meta(env, cfg), l2c2=False,
                       **trainer_kwargs)
     return trainer.run(cfg.iterations, resume=resume, time_limit_s=cfg.time_limit_s or None, chunk_s=chunk_s)

@@ -74,18 +74,45 @@ class BalanceStartConfig:
     state_vel_scale: list[float] = field(default_factory=lambda: [0.8, 1.1])  # recorded states' velocities × U
 
 
+@dataclass
+class BalanceCurriculum:
+    """How hard training starts: the pushes' speed, the control delays and the share of recorded starts
+    grow linearly from `initial` of the configured values at the start of training to all of them at
+    `until` (a fraction of the run). Outside training (no curriculum call) everything is at full value."""
+
+    initial: float = 0.0
+    until: float = 0.4
+
+    def level(self, progress: float) -> float:
+        if self.until <= 0:
+            return 1.0
+        return min(1.0, self.initial + (1.0 - self.initial) * max(progress, 0.0) / self.until)
+
+
 def _balance_randomization() -> RandomizationConfig:
     # the issue's pushes: base velocity kicks up to 0.5 m/s every 1-3 s
     return RandomizationConfig(push=PushConfig(interval_s=[1.0, 3.0], max_vel_xy=0.5, max_vel_yaw=0.4))
 
 
+ARM_JOINTS = tuple(f"{side}_{joint}_joint" for side in ("left", "right") for joint in (
+    "shoulder_pitch", "shoulder_roll", "shoulder_yaw", "elbow", "wrist_roll", "wrist_pitch", "wrist_yaw"))
+
+
 @dataclass
 class BalanceEnvConfig:
+    # Joints the policy does not move: held at the stance (their action is scaled by 0, in the env and the
+    # exported graph alike). The arms by default: legs and waist balance, and 14 fewer noisy outputs.
+    frozen_joints: list[str] = field(default_factory=lambda: list(ARM_JOINTS))
+    # A zero action aims the joints at the default pose plus the torques that hold it still, divided by
+    # Kp (envs/feedforward.py's idea at the stance): the soft 10 Hz gains otherwise sag the pose forward,
+    # and the robot falls from the stance in 1.3 s instead of 2.5 s without any policy.
+    stance_feedforward: bool = True
     rewards: BalanceRewardConfig = field(default_factory=BalanceRewardConfig)
     observations: BalanceObservationConfig = field(default_factory=BalanceObservationConfig)
     terminations: FallConfig = field(default_factory=FallConfig)
     randomization: RandomizationConfig = field(default_factory=_balance_randomization)
     starts: BalanceStartConfig = field(default_factory=BalanceStartConfig)
+    curriculum: BalanceCurriculum = field(default_factory=BalanceCurriculum)
     episode_s: float = 10.0
     physics: str = "baseline"
     physics_threads: int = 2
@@ -106,6 +133,11 @@ class BalanceEnvConfig:
         def bad(key, problem):
             raise PipelineInputError(where, key, problem)
 
+        from pipeline.robot.g1 import load_robot_config
+
+        unknown = sorted(set(self.frozen_joints) - set(load_robot_config().joint_names))
+        if unknown:
+            bad("frozen_joints", f"unknown joints {unknown}")
         if self.observations.history < 1:
             bad("observations.history", "must be >= 1")
         if not self.episode_s > 0:
@@ -118,6 +150,8 @@ class BalanceEnvConfig:
                 bad(f"starts.{key}", "must be >= 0")
         if len(s.state_vel_scale) != 2 or not 0 <= s.state_vel_scale[0] <= s.state_vel_scale[1]:
             bad("starts.state_vel_scale", "must be [low, high] with 0 <= low <= high")
+        if not (0.0 <= self.curriculum.initial <= 1.0 and 0.0 <= self.curriculum.until <= 1.0):
+            bad("curriculum", "initial and until must be in [0, 1]")
         for name, value in dataclasses.asdict(self.rewards.sigma2).items():
             if value <= 0:
                 bad(f"rewards.sigma2.{name}", "must be > 0")
@@ -126,8 +160,6 @@ class BalanceEnvConfig:
         iv = self.randomization.push.interval_s
         if len(iv) != 2 or not 0 < iv[0] <= iv[1]:
             bad("randomization.push.interval_s", "must be [min, max] seconds with 0 < min <= max")
-        from pipeline.robot.g1 import load_robot_config
-
         if self.physics not in load_robot_config().physics_presets:
             bad("physics", f"unknown physics preset {self.physics!r}")
         if self.physics_threads < 1:

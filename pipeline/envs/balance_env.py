@@ -26,6 +26,19 @@ _DENSE_TERMS = ("upright", "base_height", "lin_vel", "ang_vel", "default_pose", 
 PRIVILEGED_DIM = 3 + 1 + 2  # base linear velocity (base frame), pelvis height, feet in contact
 
 
+def balance_actuation(cfg: BalanceEnvConfig, robot=None) -> tuple[np.ndarray, np.ndarray]:
+    """(J,) joint targets of a zero action and (J,) action scale: the env's and the exported graph's."""
+    from pipeline.robot.dynamics import stance_torques
+
+    robot = robot or load_robot_config()
+    target = np.array(robot.default_joint_pos, dtype=np.float64)
+    if cfg.stance_feedforward:
+        target = target + stance_torques(robot) / robot.kp
+    scale = np.array(robot.action_scale, dtype=np.float64)
+    scale[[robot.joint_names.index(name) for name in cfg.frozen_joints]] = 0.0
+    return target, scale
+
+
 def flat_scene(physics: str, source: str) -> mujoco.MjModel:
     from pipeline.sim.model import build_sim_model
 
@@ -41,6 +54,8 @@ class BalanceEnv(RobotEnv):
         super().__init__(cfg, flat_scene(cfg.physics, source), num_envs=num_envs, backend=backend, device=device,
                          source=source)
         self._precompute_robot()
+        stance_target, action_scale = balance_actuation(cfg, self.robot)
+        self.stance_target, self.action_scale = self._tensor(stance_target), self._tensor(action_scale)
         self._start_randomizer()
         self.actor_obs_dim = proprio_dim(self.num_joints) * cfg.observations.history
         self.critic_obs_dim = self.actor_obs_dim + PRIVILEGED_DIM
@@ -51,6 +66,7 @@ class BalanceEnv(RobotEnv):
         self.penalty_curriculum_started = False
         self._clear_episode_counts()
         self._alloc_shared_state(proprio_dim(self.num_joints), PRIVILEGED_DIM)
+        self.difficulty = 1.0  # full pushes, delays and recorded starts until a trainer's curriculum says otherwise
 
     # ------------------------------------------------------------------------------------ set-up
     def _stance(self) -> None:
@@ -87,9 +103,12 @@ class BalanceEnv(RobotEnv):
                                       "base_height": [self.actor_obs_dim + 3, self.actor_obs_dim + 4],
                                       "feet_contact": [self.actor_obs_dim + 4, self.actor_obs_dim + 6]}}
 
-    def update_curriculum(self, progress: float) -> None:
-        """Once per training iteration: the penalty curriculum (the balance task has no other)."""
+    def update_curriculum(self, progress: float) -> float:
+        """Once per training iteration: the penalty curriculum, and the pushes, delays and recorded starts at
+        `BalanceCurriculum.level(progress)` of their configured values (returned)."""
         self._update_penalty_curriculum()
+        self.difficulty = self.delay_scale = self.push_scale = self.cfg.curriculum.level(progress)
+        return self.difficulty
 
     def _dense_term_names(self) -> tuple[str, ...]:
         return _DENSE_TERMS
@@ -97,7 +116,7 @@ class BalanceEnv(RobotEnv):
     def _step(self, action: torch.Tensor, phase_rate_offset=None):
         action = action.to(self.device, torch.float32).clamp(-self.cfg.action_clip, self.cfg.action_clip)
         self.episode_step += 1
-        target = self.default_joint_pos + self.action_scale * action
+        target = self.stance_target + self.action_scale * action
         self._apply_pushes()
         self.backend.step(self._delayed_control(target))
         b = self.backend
@@ -163,14 +182,14 @@ class BalanceEnv(RobotEnv):
         drop = (kind < st.drop_prob).nonzero().squeeze(-1)
         qpos[drop, 2] += st.drop_height * torch.rand(drop.numel(), device=dev)
         if self.start_states is not None:
-            recorded = (kind >= 1.0 - st.states_prob).nonzero().squeeze(-1)
+            recorded = (kind >= 1.0 - st.states_prob * self.difficulty).nonzero().squeeze(-1)
             pick = torch.randint(0, self.start_states["qpos"].shape[0], (recorded.numel(),), device=dev)
             lo, hi = st.state_vel_scale
             scale = lo + (hi - lo) * torch.rand(recorded.numel(), 1, device=dev)
             qpos[recorded] = self.start_states["qpos"][pick]
             qvel[recorded] = self.start_states["qvel"][pick] * scale
         self.backend.set_state(ids, qpos, qvel, forward=False)  # observations read qpos/qvel only
-        self._randomize_worlds(ids, qpos[:, 7:])
+        self._randomize_worlds(ids, self.stance_target)
         self.episode_step[ids] = 0
         self.prev_action[ids] = 0.0
         self.prev_action2[ids] = 0.0

@@ -58,6 +58,7 @@ class RobotEnv:
         self.sim_dt = self.control_dt / self.decimation
         self.num_joints = self.robot.num_joints
         self.action_dim = self.num_joints
+        self.delay_scale = self.push_scale = 1.0  # curricula may scale the randomised delays and the pushes
 
     # ------------------------------------------------------------------------------------ set-up
     def _tensor(self, x, dtype=torch.float32):
@@ -220,6 +221,8 @@ class RobotEnv:
         ids = due.nonzero().squeeze(-1)
         qvel = self.backend.qvel[ids].clone()
         kick = torch.rand(ids.numel(), 3, device=self.device) * 2 - 1
+        if self.push_scale != 1.0:  # a curriculum's share of the configured kicks
+            kick = kick * self.push_scale
         qvel[:, 0:2] += push.max_vel_xy * kick[:, :2]
         qvel[:, 5] += push.max_vel_yaw * kick[:, 2]
         self.backend.set_state(ids, self.backend.qpos[ids].clone(), qvel, forward=False)  # the step's views: after it
@@ -234,6 +237,8 @@ class RobotEnv:
         at `initial_target` (n, J) or (J,)."""
         ids_np = ids.cpu().numpy()
         delay = self.randomizer.apply(ids_np)  # (n,) seconds of control delay
+        if self.delay_scale != 1.0:  # a curriculum's share of the configured delays
+            delay = delay * self.delay_scale
         d = torch.as_tensor(np.round(delay / self.sim_dt), dtype=torch.long, device=self.device)
         self.delay_substeps[ids] = d
         sub = torch.arange(self.decimation, device=self.device)

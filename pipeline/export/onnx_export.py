@@ -192,9 +192,10 @@ class ExportResult:
 
 
 def export_folder(module: DeployedPolicy, obs_dim: int, metadata: dict, out_dir: str | Path,
-                  source_dir: str | Path | None = None) -> ExportResult:
+                  source_dir: str | Path | None = None, balance_export: str | Path | None = None) -> ExportResult:
     """The hub-format folder: config.json + model.safetensors (copied from the trained policy
-    folder `source_dir`), policy.onnx and policy.json. Fails (nothing written) if parity fails."""
+    folder `source_dir`), policy.onnx and policy.json, and with `balance_export` the balance policy
+    and the chain's handoff rule (export/chain.py). Fails (nothing written) if parity fails."""
     out_dir = Path(out_dir)
     if source_dir is not None:
         missing = [n for n in HUB_FILES if not (Path(source_dir) / n).is_file()]
@@ -210,13 +211,18 @@ def export_folder(module: DeployedPolicy, obs_dim: int, metadata: dict, out_dir:
         if source_dir is not None:
             for name in HUB_FILES:
                 shutil.copy2(Path(source_dir) / name, staging / name)
+        if balance_export is not None:
+            from pipeline.export.chain import write_chain
+
+            write_chain(staging, balance_export)
     return ExportResult(out_dir, out_dir / ONNX_NAME, out_dir / METADATA_NAME, diff)
 
 
 def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out_dir: str | Path,
-                   env_cfg=None) -> ExportResult:
+                   env_cfg=None, balance_export: str | Path | None = None) -> ExportResult:
     """The `export` stage: trained policy folder (models/<task>/<variant>/final) → hub-format
-    folder with policy.onnx + policy.json (models/<task>/<variant>/export)."""
+    folder with policy.onnx + policy.json (models/<task>/<variant>/export), and the balance policy
+    the chain stands with (`balance_export`, models/pretrained/balance/export) in its `balance/`."""
     from pipeline.export.metadata import build_metadata, observation_layout, termination_metadata, terrain_metadata
     from pipeline.rl.checkpoint import load_policy
     from pipeline.robot.g1 import load_robot_config
@@ -257,4 +263,4 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
         reference = ReferenceOffset.for_layout(metadata["reference"]["joint_target"], metadata["phase"]["rate"], layout,
                                                push_prior)
     module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale, reference=reference)
-    return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir)
+    return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir, balance_export=balance_export)

@@ -87,7 +87,8 @@ class PolicyStepper:
         self.phase_rate = float(meta["phase"]["rate"])
         self.offset_bounds = meta["phase"]["offset_bounds"]
         # an episode's step limit: the phase may slow down to 0.25x its rate, so 4 clip lengths cover it
-        self.max_steps = int(np.ceil(4.0 / self.phase_rate))
+        # (a policy without a phase, the balance policy, has no limit of its own)
+        self.max_steps = int(np.ceil(4.0 / self.phase_rate)) if self.phase_rate > 0 else None
         self.num_joints = len(meta["joint_names"])
         self.obs = ObservationBuilder(meta["observation"], 1.0 / self.control_dt)
         self.output_names = [o.name for o in session.get_outputs()]

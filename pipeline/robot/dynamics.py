@@ -38,25 +38,38 @@ def joint_torques(motion: Motion, feet_in_contact: np.ndarray, robot: RobotConfi
     qvel = motion.qvel() if qvel is None else qvel
     qacc = np.gradient(qvel, motion.dt, axis=0) if qacc is None else qacc
     feet = [model.body(robot.feet[side]["body"]).id for side in ("left", "right")]
-    nv = model.nv
-    jac_pos, jac_rot = np.zeros((3, nv)), np.zeros((3, nv))
-    torques = np.zeros((motion.num_frames, nv - 6))
+    torques = np.zeros((motion.num_frames, model.nv - 6))
     for t in range(motion.num_frames):
         data.qpos[:], data.qvel[:], data.qacc[:] = qpos[t], qvel[t], qacc[t]
-        mujoco.mj_inverse(model, data)
-        generalized = data.qfrc_inverse.copy()
-        rows = []
-        for foot, standing in zip(feet, feet_in_contact[t]):
-            if standing:
-                mujoco.mj_jacBody(model, data, jac_pos, jac_rot, foot)
-                rows.append(np.vstack([jac_pos, jac_rot]))
-        if rows:
-            jac = np.vstack(rows)  # (6·feet, nv)
-            wrench, *_ = np.linalg.lstsq(jac[:, :6].T, generalized[:6], rcond=None)
-            torques[t] = generalized[6:] - jac[:, 6:].T @ wrench
-        else:
-            torques[t] = generalized[6:]
+        torques[t] = _carried_torques(model, data, [f for f, standing in zip(feet, feet_in_contact[t]) if standing])
     return torques
+
+
+def stance_torques(robot: RobotConfig | None = None, model: mujoco.MjModel | None = None) -> np.ndarray:
+    """(J,) joint torques that hold the default pose still, its weight carried by both feet."""
+    from pipeline.robot.g1 import default_qpos
+
+    robot = robot or load_robot_config()
+    model = _without_contacts(model or build_model())
+    data = mujoco.MjData(model)
+    data.qpos[:] = default_qpos(robot)
+    return _carried_torques(model, data, [model.body(robot.feet[side]["body"]).id for side in ("left", "right")])
+
+
+def _carried_torques(model: mujoco.MjModel, data: mujoco.MjData, standing_feet: list[int]) -> np.ndarray:
+    """Joint torques of the state in `data` (qpos, qvel, qacc), the base wrench carried by `standing_feet`."""
+    mujoco.mj_inverse(model, data)
+    generalized = data.qfrc_inverse.copy()
+    rows = []
+    jac_pos, jac_rot = np.zeros((3, model.nv)), np.zeros((3, model.nv))
+    for foot in standing_feet:
+        mujoco.mj_jacBody(model, data, jac_pos, jac_rot, foot)
+        rows.append(np.vstack([jac_pos, jac_rot]))
+    if not rows:
+        return generalized[6:]
+    jac = np.vstack(rows)  # (6·feet, nv)
+    wrench, *_ = np.linalg.lstsq(jac[:, :6].T, generalized[:6], rcond=None)
+    return generalized[6:] - jac[:, 6:].T @ wrench
 
 
 def fit_half_window(window_s: float, dt: float) -> int:

@@ -1,0 +1,68 @@
+"""`rest_to_rest`: the evaluation of a task's whole chain (stand → go → task → balance), per ψ range.
+
+Runs `export.chain.ChainRunner` (the loop `adamimic sim2sim` and `rehearse` judge with) at ψ values
+spread evenly inside each range, from the stance at rest. Under domain randomisation each episode
+draws the paper's table (`envs.config.RandomizationConfig`, as training does: masses, centre of mass,
+friction, restitution, gains, motor strength, control delay) into its own model.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.envs.config import RandomizationConfig
+from pipeline.envs.randomization import DomainRandomizer
+from pipeline.evaluation.evaluate import spread_in_ranges
+from pipeline.export.chain import ChainRunner
+
+RATES = ("rest_to_rest", "success", "standing")
+
+
+class _OneModel:
+    """A single MjModel behind the backend method the randomiser writes through."""
+
+    def __init__(self, model):
+        self.model = model
+
+    def set_model_field(self, name: str, world_ids, values) -> None:
+        getattr(self.model, name)[:] = np.asarray(values)[0]
+
+
+def model_randomizer(cfg: RandomizationConfig):
+    """randomize(model) -> control delay (s): one draw of the table into `model` (torch's RNG seeds it)."""
+    def randomize(model) -> float:
+        return float(DomainRandomizer(cfg, model, _OneModel(model)).apply(np.array([0]))[0])
+
+    return randomize
+
+
+def evaluate_chain(export_dir: str | Path, psi_ranges: dict, episodes_per_range: int, *,
+                   randomization: RandomizationConfig | None = None, seed: int = 0) -> dict:
+    """{"ranges": {name: {rate: {"mean": %}, "episodes": n}}, "endings": {...}, "episodes": [...]}; the
+    overall range pools every episode."""
+    runner = ChainRunner(export_dir)
+    randomize = None
+    if randomization is not None:
+        cfg = copy.deepcopy(randomization)
+        cfg.enabled = True
+        randomize = model_randomizer(cfg)
+    torch.manual_seed(seed)
+    episodes = []
+    for name, psi in spread_in_ranges(psi_ranges, list(psi_ranges), episodes_per_range):
+        result = runner.run(psi, randomize=randomize).to_json()
+        episodes.append(dict(result, range=name))
+    ranges = {}
+    for name in [*psi_ranges, "overall"]:
+        chosen = [e for e in episodes if name == "overall" or e["range"] == name]
+        ranges[name] = {rate: {"mean": 100.0 * float(np.mean([e[rate] for e in chosen]))} for rate in RATES}
+        ranges[name]["episodes"] = len(chosen)
+    endings: dict[str, int] = {}
+    for e in episodes:
+        key = f"{e['ended_in']}:{e['end']}"
+        endings[key] = endings.get(key, 0) + 1
+    return {"chain": runner.chain, "domain_randomization": randomization is not None, "seed": seed,
+            "ranges": ranges, "endings": dict(sorted(endings.items())), "episodes": episodes}
