@@ -29,7 +29,7 @@ $(STAMP): pyproject.toml Makefile
 setup: $(STAMP)
 
 repro: setup
-	. $(VENV)/bin/activate && dvc repro
+	. $(VENV)/bin/activate && python -m pipeline.config params.yaml && dvc repro
 
 test: setup
 	$(PY) -m pytest -q

@@ -48,7 +48,7 @@ def stage_main(run: Callable, description: str = "", argv: list[str] | None = No
 
 
 def main(argv: list[str] | None = None) -> None:
-    """`adamimic <command>`: user-facing tools beside `dvc repro` (play, share, sim2sim, deploy, sim-bridge)."""
+    """`adamimic <command>`: user-facing tools beside `dvc repro` (play, share, sim2sim, deploy, rehearse, sim-bridge)."""
     import math
 
     from pipeline.deploy.safety import SafetyConfig
@@ -62,9 +62,12 @@ def main(argv: list[str] | None = None) -> None:
     play.add_argument("--out", type=Path, default=Path("play.mp4"))
     play.add_argument("--seconds", type=float, default=None)
 
-    sim2sim = sub.add_parser("sim2sim", help="deployment-style MuJoCo loop on the ONNX policy alone")
+    sim2sim = sub.add_parser("sim2sim", help="deployment-style MuJoCo loop on the ONNX policies alone: stand, go, "
+                                             "task, balance; one JSON line per psi")
     sim2sim.add_argument("policy", type=Path)
     sim2sim.add_argument("--psi", type=float, nargs="+", required=True)
+    sim2sim.add_argument("--task-only", action="store_true",
+                         help="the task policy alone, from the state it was trained to start in (no chain)")
 
     share = sub.add_parser("share", help="write a dataset or policy folder in hub format; push if online")
     share.add_argument("path", type=Path, help="a dataset folder (meta/info.json) or policy folder (config.json)")
@@ -83,14 +86,22 @@ def main(argv: list[str] | None = None) -> None:
     defaults = SafetyConfig()
     for key, default, text in (("damping-s", defaults.damping_s, "damping at the start"),
                                ("ramp-s", defaults.ramp_s, "ramp to the default pose"),
-                               ("hold-after-s", defaults.hold_after_s, "default pose after the episode, then exit; "
-                                                                       "unset: hold until Ctrl-C"),
+                               ("stand-s", defaults.stand_s, "the balance policy holds the robot this long before "
+                                                             "a go counts"),
+                               ("hold-after-s", defaults.hold_after_s, "the balance policy after the episode, then "
+                                                                       "exit; unset: until Ctrl-C"),
                                ("state-timeout-s", defaults.state_timeout_s, "LowState silence before damping"),
                                ("max-tilt-deg", round(math.degrees(defaults.max_tilt_rad), 1),
                                 "base tilt before damping"),
                                ("joint-margin-rad", defaults.joint_margin_rad,
                                 "joint beyond its limit by this before damping")):
         deploy.add_argument(f"--{key}", type=float, default=default, help=f"{text} (default {default})")
+
+    rehearse = sub.add_parser("rehearse", help="deploy against sim-bridge over loopback with the real timings; "
+                                               "one JSON line per psi (success, standing, rest_to_rest)")
+    rehearse.add_argument("policy", type=Path, help="exported policy folder with its balance policy (chain.json)")
+    rehearse.add_argument("--psi", type=float, nargs="+", required=True)
+    rehearse.add_argument("--keep-s", type=float, default=5.0, help="balance policy after the task (default 5)")
 
     bridge = sub.add_parser("sim-bridge", help="a MuJoCo G1 behind the robot's DDS interface, for `deploy`")
     bridge.add_argument("policy", type=Path, help="exported policy folder (for the scene, gains and start state)")
@@ -101,6 +112,9 @@ def main(argv: list[str] | None = None) -> None:
     bridge.add_argument("--sim-dt", type=float, default=0.002, help="physics and motor-law period (default 500 Hz)")
     bridge.add_argument("--seconds", type=float, default=None, help="stop after this long (default: SIGTERM/Ctrl-C)")
     bridge.add_argument("--trace", type=Path, help="write the per-control-period pelvis and sites here (.npz)")
+    bridge.add_argument("--gantry-s", type=float, default=4.0,
+                        help="hang the robot on a virtual gantry, lower it onto its feet and let go this long after "
+                             "the first command (deploy's damping + ramp); 0: start standing on the ground")
 
     args = parser.parse_args(argv)
     try:
@@ -109,17 +123,24 @@ def main(argv: list[str] | None = None) -> None:
 
             play_to_mp4(args.policy, psi=args.psi, out=args.out, seconds=args.seconds)
             print(f"wrote {args.out}")
-        elif args.command == "sim2sim":
+        elif args.command == "sim2sim" and args.task_only:
             from pipeline.export.sim2sim import run_sim2sim
 
             print(json.dumps(run_sim2sim(args.policy, psi_values=args.psi), indent=1))
+        elif args.command == "sim2sim":
+            from pipeline.export.chain import ChainRunner
+
+            runner = ChainRunner(args.policy)
+            for psi in args.psi:
+                print(json.dumps(runner.run(psi).to_json()), flush=True)
         elif args.command == "share":
             from pipeline.share import share
 
             print(share(args.path, args.out, repo_id=args.repo_id))
         elif args.command == "deploy":
             from pipeline.deploy.controller import check_interface, run_deploy
-            safety = SafetyConfig(damping_s=args.damping_s, ramp_s=args.ramp_s, hold_after_s=args.hold_after_s,
+            safety = SafetyConfig(damping_s=args.damping_s, ramp_s=args.ramp_s, stand_s=args.stand_s,
+                                  hold_after_s=args.hold_after_s,
                                   state_timeout_s=args.state_timeout_s, max_tilt_rad=math.radians(args.max_tilt_deg),
                                   joint_margin_rad=args.joint_margin_rad)
             report = run_deploy(args.policy, args.psi, interface=check_interface(args.interface),
@@ -127,12 +148,20 @@ def main(argv: list[str] | None = None) -> None:
                                 odometry_topic=args.odometry_topic, lockstep=args.lockstep, safety=safety)
             print(f"{report.end}: {report.message}")
             sys.exit(report.exit_code)
+        elif args.command == "rehearse":
+            from pipeline.deploy.rehearse import rehearse
+
+            for line in rehearse(args.policy, args.psi, keep_s=args.keep_s):
+                print(json.dumps(line), flush=True)
         elif args.command == "sim-bridge":
             from pipeline.deploy.bridge import SimBridge
             from pipeline.deploy.transport import DdsLink
 
+            from pipeline.deploy.gantry import Gantry
+
             sim = SimBridge(args.policy, args.psi, link=DdsLink(args.domain, args.interface),
-                            lockstep=args.lockstep, sim_dt=args.sim_dt)
+                            lockstep=args.lockstep, sim_dt=args.sim_dt,
+                            gantry=Gantry(release_s=args.gantry_s, lower_s=min(2.0, args.gantry_s)) if args.gantry_s > 0 else None)
             print(f"sim-bridge: G1 on domain {args.domain} via {args.interface}", file=sys.stderr, flush=True)
             sim.run(args.seconds)
             if args.trace is not None:

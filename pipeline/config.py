@@ -77,6 +77,11 @@ def resolve_task_templates(tasks_raw: dict, path: Path) -> dict:
             if parent not in library:
                 raise PipelineInputError(path, f"tasks.{name}.extends",
                                          f"unknown paper task {parent!r}; known: {', '.join(library)}")
+            if "input" not in raw:  # dvc.yaml's stages read `input` from params.yaml itself, not from here
+                raise PipelineInputError(path, f"tasks.{name}.input",
+                                         f"a task that extends {parent!r} names its clip too (dvc.yaml tracks it as a "
+                                         f"dependency from params.yaml): add `input: {library[parent]['input']}` or "
+                                         f"your own clip's path")
             raw = _deep_merge(library[parent], {k: v for k, v in raw.items() if k != "extends"})
         resolved[name] = raw
     return resolved
@@ -143,3 +148,22 @@ def _extra_seeds(value, main_seed: int, path: Path) -> tuple[int, ...]:
     if len(set(value)) != len(value):
         raise PipelineInputError(path, "extra_seeds", "lists a seed twice")
     return tuple(value)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """`python -m pipeline.config [params.yaml]`: check the parameters before DVC reads them (`make repro`
+    runs it), so a broken task is named by its key instead of by DVC's templating."""
+    import sys
+
+    argv = sys.argv[1:] if argv is None else argv
+    path = argv[0] if argv else "params.yaml"
+    try:
+        params = load_params(path)
+    except PipelineInputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(2)
+    print(f"{path}: {len(params.tasks)} task(s), {len(params.variants)} variant(s)")
+
+
+if __name__ == "__main__":
+    main()

@@ -194,7 +194,7 @@ def run_evaluate(params: PipelineConfig, args) -> None:
         out_dir = paths.seed_results_dir(args.task, args.variant, seed)
     doc = evaluate_variant(task=args.task, variant=args.variant, data=data, env_cfg=params.env,
                            eval_cfg=params.evaluate, policy_dir=model_dir / "final" / "policy",
-                           out_dir=out_dir, videos=args.seed is None)
+                           out_dir=out_dir, videos=args.seed is None, balance_export=balance_export(params))
     print(json.dumps(doc, indent=1, default=float)[:4000])
 
 

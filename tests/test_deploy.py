@@ -30,13 +30,15 @@ from pipeline.deploy.transport import Received, check_low_state, sdk_types
 
 PROVEN = {"unitree-sdk2": "1.0.1", "cyclonedds": "11.0.1"}
 SDK = sdk_types()
-QUICK = SafetyConfig(damping_s=0.04, ramp_s=0.1, hold_after_s=0.04)
+QUICK = SafetyConfig(damping_s=0.04, ramp_s=0.1, stand_s=0.04, hold_after_s=0.04)
 REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def export(tmp_path_factory):
-    """A far-jump export (stand-in network, the real metadata contract), as tests/test_export.py makes it."""
+    """A far-jump export (stand-in networks, the real metadata contract) with its chain: a stand-in balance
+    policy that never moves (tests/test_chain.py), as tests/test_export.py makes the task's."""
+    from test_chain import chained_export
     from test_export import ComposedStandIn, _tracking_data
 
     from pipeline.export.metadata import build_metadata, observation_layout
@@ -48,7 +50,20 @@ def export(tmp_path_factory):
     layout = observation_layout(cfg, history=5)
     module = DeployedPolicy(ComposedStandIn(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
     meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(), obs_layout=layout)
-    return export_folder(module, layout["dim"], meta, tmp_path_factory.mktemp("deploy") / "export").folder
+    root = tmp_path_factory.mktemp("deploy")
+    return chained_export(export_folder(module, layout["dim"], meta, root / "task").folder, root / "export")
+
+
+def _stance29(export, motors):
+    """The balance policy's joint targets at a zero action (the stand-in's), on the 29 motors."""
+    stance = json.loads((export / "balance" / "policy.json").read_text())["stance"]["joint_target"]
+    return motors.to_motors(np.asarray(stance), 0.0)
+
+
+def _commands_in(report, robot, mode):
+    """The commands written while the controller was in `mode` (one command per tick)."""
+    spans = list(zip(report.modes, report.modes[1:] + [(len(robot.commands), None)]))
+    return [c for (start, name), (stop, _) in spans if name == mode for c in robot.commands[start:stop]]
 
 
 def _domain() -> int:
@@ -212,10 +227,12 @@ def test_damping_then_ramp_then_waits_for_the_go(export):
     assert report.end == "interrupted" and not report.phases  # no go, no policy step
     first = robot.commands[0]
     assert np.all(first["kp"] == 0) and np.all(first["kd"] > 0)  # damping
-    ramp = [c for c in robot.commands if c["kp"][0] > 0]
+    ramp = _commands_in(report, robot, "ramp")
     default29 = robot.motors.to_motors(np.asarray(meta["default_joint_pos"]), 0.0)
     assert np.allclose(ramp[0]["q"], start_q, atol=1e-6)  # from the measured pose ...
-    assert np.allclose(ramp[-1]["q"], default29, atol=1e-6)  # ... to the default pose
+    assert np.allclose(ramp[-1]["q"], default29, atol=0.05)  # ... to the default pose
+    stand = _commands_in(report, robot, "stand")
+    assert stand and all(np.allclose(c["q"], _stance29(export, robot.motors), atol=1e-5) for c in stand)  # the balance policy
     middle = ramp[len(ramp) // 2 - 1]["q"]
     assert np.all((middle - default29) * (start_q - default29) >= -1e-9)  # on the way between them
     waist = [G1_MOTOR_NAMES.index("waist_roll_joint"), G1_MOTOR_NAMES.index("waist_pitch_joint")]
@@ -277,12 +294,30 @@ def test_after_the_episode_it_stands_until_ctrl_c(export):
         assert controller.tick < 200, "the episode did not end"
 
     report = _controller(export, robot, go=lambda: True, on_tick=on_tick,
-                         safety=SafetyConfig(damping_s=0.0, ramp_s=0.1, hold_after_s=None)).run()
+                         safety=SafetyConfig(damping_s=0.0, ramp_s=0.1, stand_s=0.0, hold_after_s=None)).run()
     assert report.end == "interrupted" and report.phases[-1] >= 1
-    stand = [c for c in robot.commands if c["kp"][0] > 0][-10:]  # back at the default pose, held
-    default29 = robot.motors.to_motors(np.asarray(meta["default_joint_pos"]), 0.0)
-    assert all(np.allclose(c["q"], default29, atol=1e-6) for c in stand)
+    stand = [c for c in robot.commands if c["kp"][0] > 0][-10:]  # the balance policy holds the robot
+    assert all(np.allclose(c["q"], _stance29(export, robot.motors), atol=1e-5) for c in stand)
     assert all(np.all(c["kp"] == 0) for c in robot.commands[-5:])
+
+
+def test_an_export_without_its_balance_policy_is_refused_before_anything_is_sent(export, tmp_path):
+    bare = tmp_path / "bare"
+    shutil.copytree(export, bare)
+    (bare / "chain.json").unlink()
+    robot = FakeRobot(json.loads((bare / "policy.json").read_text()))
+    with pytest.raises(PipelineInputError, match="no balance policy"):
+        _controller(bare, robot)
+    assert robot.commands == []
+
+
+def test_the_go_counts_only_after_stand_s_of_balance(export):
+    meta = json.loads((export / "policy.json").read_text())
+    robot = FakeRobot(meta, follow=True)
+    report = _controller(export, robot, go=lambda: True, on_tick=_stop_after(40),
+                         safety=SafetyConfig(damping_s=0.04, ramp_s=0.1, stand_s=0.3)).run()
+    modes = dict((name, tick) for tick, name in report.modes if name != "damping")
+    assert modes["policy"] - modes["stand"] == 15  # 0.3 s at 50 Hz
 
 
 def test_policy_needing_odometry_without_a_source_is_refused(export):
@@ -306,38 +341,49 @@ def _bridge(export, domain, *extra):
                             stderr=subprocess.PIPE, text=True)
 
 
-def test_one_episode_on_the_bridge_matches_sim2sim(export, tmp_path):
-    """Lockstep bridge at 500 Hz physics and motor law; sim2sim steps the export's 200 Hz: the same
-    end and success, the landing (pelvis at the episode's end) within LANDING_TOLERANCE_M."""
+def test_on_the_bridge_the_robot_is_lowered_from_its_gantry_and_runs_the_chain(export, tmp_path):
+    """Lockstep bridge at 500 Hz physics and motor law: the G1 hangs in the default pose at the task's
+    start, is lowered onto its feet, and deploy runs damping, ramp, the balance policy, the task to its
+    handoff and the balance policy again, never from the policy's trained state."""
     from pipeline.deploy.controller import run_deploy
-    from pipeline.export.sim2sim import EpisodeJudge, Sim2Sim
 
-    landing_tolerance_m = 0.05
     domain, trace = _domain(), tmp_path / "trace.npz"
-    bridge = _bridge(export, domain, "--lockstep", "--trace", str(trace))
+    bridge = _bridge(export, domain, "--lockstep", "--trace", str(trace), "--gantry-s", "0.6")
     try:
         report = run_deploy(export, 1.4, interface="lo", domain_id=domain, go_flag=True, lockstep=True,
                             odometry_topic="rt/adamimic/odometry",
-                            safety=SafetyConfig(damping_s=0.0, ramp_s=0.0, hold_after_s=0.04))
+                            safety=SafetyConfig(damping_s=0.2, ramp_s=0.4, stand_s=0.4, hold_after_s=0.2))
     finally:
         bridge.send_signal(signal.SIGTERM)
         bridge.wait(timeout=20)
     assert report.end == "done", report.message
+    assert [m for _, m in report.modes] == ["damping", "ramp", "stand", "policy", "stand", "damping"]
+    assert report.phases[-1] >= 1.0 - 1e-6
     run = np.load(trace)
-    # the state after policy step k is the one the bridge published after that step's command
-    rows = [int(np.flatnonzero(run["tick"] == tick + 20)[0]) for tick in report.state_ticks]
-    reference = Sim2Sim(export).run_episode(1.4)
-    runner = Sim2Sim(export)
-    judge = EpisodeJudge(runner.meta, 1.4, runner.keyframe_targets(1.4))
-    from pipeline.export.policy_step import projected_gravity
+    meta = json.loads((export / "policy.json").read_text())
+    first = run["qpos"][0]
+    assert np.allclose(first[:2], meta["initial_state"]["qpos"][:2], atol=0.02)  # at the task's start ...
+    assert first[2] > 0.76 + 0.03  # ... hanging above the stance
+    assert not np.allclose(first, meta["initial_state"]["qpos"][:7], atol=0.02)  # not the trained state
 
-    ends = [judge.update(phase, run["site_xpos"][r], projected_gravity(run["qpos"][r, 3:7]), run["qpos"][r, 2])
-            for phase, r in zip(report.phases, rows)]
-    assert ends[-1] == reference.end == "done" and all(e is None for e in ends[:-1])
-    assert len(report.phases) == reference.steps
-    assert judge.success == reference.success
-    landing = run["qpos"][rows[-1], :3]
-    assert np.linalg.norm(landing - np.asarray(reference.final_base_pos)) < landing_tolerance_m
+
+def test_rehearse_runs_deploy_against_the_bridge_with_the_real_timings(export):
+    """`adamimic rehearse`: real time, deploy's default damping (1 s), ramp (3 s), 2 s of standing, the
+    go, the task, then the balance policy; one JSON line per ψ with the chain's verdicts."""
+    from pipeline.deploy.rehearse import rehearse
+
+    start = time.monotonic()
+    (line,) = rehearse(export, [1.4], keep_s=3.5, log=lambda _: None)
+    defaults = SafetyConfig()
+    assert time.monotonic() - start >= defaults.damping_s + defaults.ramp_s + defaults.stand_s
+    assert line["modes"][:4] == ["damping", "ramp", "stand", "policy"] and line["modes"][-1] == "damping"
+    assert abs(line["stood_before_go_s"] - defaults.stand_s) < 0.05
+    assert set(line) >= {"psi", "keyframe_errors", "success", "standing", "rest_to_rest"}
+    assert line["rest_to_rest"] == (line["success"] and line["standing"])
+    if line["deploy_end"] == "done":  # handed over and held for keep_s: the balance policy came back
+        assert line["modes"][4] == "stand" and time.monotonic() - start >= 6.0 + 3.5
+    else:  # the stand-in policies may let the robot fall: the watchdog's damping, and no rest_to_rest
+        assert line["deploy_end"] == "fault" and not line["rest_to_rest"]
 
 
 def test_killed_bridge_mid_episode_sends_the_controller_to_damping(export):
@@ -356,8 +402,8 @@ def test_killed_bridge_mid_episode_sends_the_controller_to_damping(export):
     try:
         report = run_deploy(export, 1.4, interface="lo", domain_id=domain, go_flag=True,
                             odometry_topic="rt/adamimic/odometry", on_tick=kill_mid_episode,
-                            safety=SafetyConfig(damping_s=0.1, ramp_s=0.2, hold_after_s=0.1, state_timeout_s=0.3,
-                                                first_state_timeout_s=20))
+                            safety=SafetyConfig(damping_s=0.1, ramp_s=0.2, stand_s=0.1, hold_after_s=0.1,
+                                                state_timeout_s=0.3, first_state_timeout_s=20))
     finally:
         bridge.kill()
         bridge.wait(timeout=20)
@@ -392,7 +438,7 @@ def test_dry_run_publishes_nothing(export):
     try:
         report = run_deploy(export, 1.4, interface="lo", domain_id=domain, dry_run=True, go_flag=True,
                             pose=lambda: (np.zeros(3), 0.0), on_tick=_stop_after(10),
-                            safety=SafetyConfig(damping_s=0.04, ramp_s=0.1, state_timeout_s=0.5))
+                            safety=SafetyConfig(damping_s=0.04, ramp_s=0.1, stand_s=0.04, state_timeout_s=0.5))
     finally:
         stop.set()
         thread.join()

@@ -97,6 +97,23 @@ def test_missing_input_is_named_with_its_task(tmp_path):
     assert not out.exists()
 
 
+def test_a_task_extending_a_paper_task_without_its_input_is_named_before_dvc_runs(tmp_path):
+    """`tasks: {triple_jump: {extends: triple_jump}}`: DVC's templating would fail on `item.input` with its own
+    words; the project's check (`python -m pipeline.config`, the first step of `make repro`) names the task and
+    the key and says what to write, and a task that writes it parses."""
+    path = _write_params(tmp_path / "params.yaml", lambda r: r["tasks"].update(triple_jump={"extends": "triple_jump"}))
+    result = subprocess.run([sys.executable, "-m", "pipeline.config", str(path)], cwd=REPO_ROOT, capture_output=True,
+                            text=True, env=_env())
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "tasks.triple_jump.input" in result.stderr and "input: data/inputs/triple_jump.npz" in result.stderr
+    fixed = _write_params(tmp_path / "fixed.yaml", lambda r: r["tasks"].update(
+        triple_jump={"extends": "triple_jump", "input": "data/inputs/triple_jump.npz"}))
+    result = subprocess.run([sys.executable, "-m", "pipeline.config", str(fixed)], cwd=REPO_ROOT, capture_output=True,
+                            text=True, env=_env())
+    assert result.returncode == 0 and "2 task(s)" in result.stdout
+    assert "python -m pipeline.config params.yaml && dvc repro" in (REPO_ROOT / "Makefile").read_text()
+
+
 def test_duplicate_task_names_are_refused(tmp_path):
     text = (REPO_ROOT / "params.yaml").read_text().replace(
         "tasks:\n", "tasks:\n  far_jump_sample:\n    extends: far_jump\n    input: x.npz\n", 1

@@ -4,7 +4,10 @@ Publishes `unitree_hg` LowState_ on rt/lowstate and applies LowCmd_ from rt/lowc
 motor law τ = τ_ff + kp (q* − q) + kd (dq* − dq), clipped to the effort limits, evaluated by MuJoCo at
 every physics step (500 Hz by default, as the robot's motor drivers run it) through the actuators'
 gain and bias terms. The pelvis pose goes out as nav_msgs Odometry_ (a lidar-odometry stand-in).
-The physics holds still until the first LowCmd, as a robot hanging on its gantry would.
+The robot starts where a real one does: in the default pose hanging on a virtual gantry (gantry.py),
+at the task's start position, its feet off the ground; the physics runs from the first LowCmd, and
+the gantry lowers it onto its feet and lets go `gantry.release_s` later (after deploy's damping and
+ramp). With no gantry it starts standing on its feet in the default pose.
 
 Real time (default): the simulation follows the wall clock, like the robot. `lockstep`: one control
 period (`control_dt`) of physics per LowCmd received, then one LowState, so the controller and this
@@ -24,6 +27,7 @@ import numpy as np
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.deploy.crc import low_state_crc
+from pipeline.deploy.gantry import Gantry
 from pipeline.deploy.motors import NUM_MOTORS, MotorMap
 from pipeline.deploy.transport import (LOW_CMD_TOPIC, LOW_STATE_TOPIC, ODOMETRY_TOPIC, CheckedReader, check_low_cmd)
 
@@ -32,8 +36,10 @@ REPUBLISH_S = 0.02  # lockstep: the last state again while no command comes
 
 class SimBridge:
     def __init__(self, export_dir: str | Path, psi: float, *, link, lockstep: bool = False,
-                 sim_dt: float = 0.002, odometry_hz: float = 10.0):
+                 sim_dt: float = 0.002, odometry_hz: float = 10.0, gantry: Gantry | None = Gantry()):
+        from pipeline.export.chain import stance_state
         from pipeline.export.sim2sim import build_scene
+        from pipeline.robot.g1 import load_robot_config
 
         meta_path = Path(export_dir) / "policy.json"
         if not meta_path.is_file():
@@ -44,8 +50,13 @@ class SimBridge:
         self.model = model = build_scene(meta, float(psi))
         model.opt.timestep = sim_dt
         self.data = mujoco.MjData(model)
-        self.data.qpos[:] = meta["initial_state"]["qpos"]
-        self.data.qvel[:] = meta["initial_state"]["qvel"]
+        self.stance_z = load_robot_config().default_root_height
+        self.data.qpos[:], self.data.qvel[:] = stance_state(meta, model, self.stance_z)
+        self.stance_z = float(self.data.qpos[2])  # with the ground under the start
+        self.gantry, self.pelvis = gantry, model.body("pelvis").id
+        self.anchor_xy = self.data.qpos[0:2].copy()
+        if gantry is not None:
+            self.data.qpos[2] += gantry.lift_m
         mujoco.mj_forward(model, self.data)
         names = meta["joint_names"]
         self.motors = MotorMap.from_joint_names(names, str(meta_path))
@@ -122,6 +133,9 @@ class SimBridge:
 
     def _physics(self, steps: int) -> None:
         for _ in range(steps):
+            if self.gantry is not None:
+                self.gantry.apply(self.model, self.data, self.pelvis, self.anchor_xy, self.stance_z,
+                                  self.steps * self.model.opt.timestep)
             mujoco.mj_step(self.model, self.data)
             self.steps += 1
 

@@ -1,9 +1,12 @@
-"""`adamimic deploy`: the exported policy on a G1 over its low-level DDS interface, at 50 Hz.
+"""`adamimic deploy`: the exported chain on a G1 over its low-level DDS interface, at 50 Hz.
 
 Each tick takes the newest sound LowState (CRC and motor count checked), lets the watchdog judge
 it, and publishes one signed LowCmd: per motor q, dq = 0, kp, kd, tau = 0 for the robot's 500 Hz
-PD. The policy's observation, phase and odometry hold come from `PolicyStepper`, the same code
-`sim2sim` runs; nothing but the export (policy.onnx + policy.json) describes the policy.
+PD. After the damping and the ramp to the default pose, the export's balance policy holds the robot
+(STAND); on the go the task policy runs (POLICY) until its phase reaches the chain's handoff, and the
+balance policy takes the robot back (STAND) until Ctrl-C. Both policies' observations, phase and
+odometry hold come from `PolicyStepper`, the same code `sim2sim` runs; nothing but the export
+(policy.onnx + policy.json, balance/, chain.json) describes them.
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ class KeyGo:
 
     def arm(self) -> None:
         if not self.armed:
-            print("deploy: standing in the default pose; press Enter for the go (Ctrl-C: damping)",
+            print("deploy: the balance policy holds the robot; press Enter for the go (Ctrl-C: damping)",
                   file=sys.stderr, flush=True)
         self.armed = True
 
@@ -87,10 +90,19 @@ class G1Controller:
                  log: Callable[[str], None] = lambda line: print(line, file=sys.stderr, flush=True)):
         from pipeline.export.sim2sim import check_psi, load_exported
 
+        from pipeline.export.chain import read_chain
+
+        self.chain = read_chain(export_dir)  # no balance policy: refused before anything is sent
         session, self.meta = load_exported(export_dir)
         check_psi(self.meta, psi)
         self.psi = float(psi)
         self.stepper = PolicyStepper(session, self.meta)
+        balance_session, balance_meta = load_exported(Path(export_dir) / self.chain["balance"])
+        if balance_meta["joint_names"] != self.meta["joint_names"]:
+            raise PipelineInputError(Path(export_dir) / self.chain["balance"] / "policy.json", "joint_names",
+                                     "differ from the task policy's")
+        self.balance = PolicyStepper(balance_session, balance_meta)
+        self.handoff_phase = float(self.chain["handoff_phase"])
         self.motors = MotorMap.from_joint_names(self.meta["joint_names"], str(Path(export_dir) / "policy.json"))
         self.odometry: Odometry | None = require_odometry(self.stepper.needs_odometry, pose_source,
                                                           str(Path(export_dir) / "policy.json"))
@@ -194,6 +206,7 @@ class G1Controller:
                     self._enter(Mode.RAMP)
                 if self.mode is Mode.RAMP and self._elapsed() >= self.safety.ramp_s:
                     self._enter(Mode.STAND)
+                    self.balance.reset()
                 hold_after = self.safety.hold_after_s
                 if (self.mode is Mode.STAND and finishing is not None and hold_after is not None
                         and self._elapsed() >= hold_after):
@@ -201,7 +214,7 @@ class G1Controller:
                                         f"{len(self.report.phases)} policy steps", last_q, mode_machine)
                 if self.mode is Mode.STAND and finishing is None and hasattr(self.go, "arm"):
                     self.go.arm()
-                if self.mode is Mode.STAND and finishing is None and self.go():
+                if self.mode is Mode.STAND and finishing is None and self._elapsed() >= self.safety.stand_s and self.go():
                     self.stepper.reset()
                     if self.odometry is not None:
                         self.odometry.start()
@@ -212,13 +225,10 @@ class G1Controller:
                 elif self.mode is Mode.RAMP:
                     target = ramp_targets(ramp_from, self.default, elapsed, self.safety.ramp_s)
                     self._write(clamp_targets(target, self.limits), self.kp, self.kd, mode_machine)
-                elif self.mode is Mode.STAND:
-                    if finishing is None:
-                        target = self.default
-                    else:  # after the episode: from the last policy target back to the default pose
-                        back_s = self.safety.ramp_s if hold_after is None else min(self.safety.ramp_s, hold_after)
-                        target = ramp_targets(ramp_from, self.default, elapsed, back_s)
-                    self._write(clamp_targets(target, self.limits), self.kp, self.kd, mode_machine)
+                elif self.mode is Mode.STAND:  # the balance policy, before the go and after the task
+                    out = self.balance.step(base_ang_vel=measured.base_ang_vel, projected_gravity=measured.gravity,
+                                            joint_pos=measured.joint_pos, joint_vel=measured.joint_vel, psi=0.0)
+                    self._write(clamp_targets(out.joint_targets, self.limits), self.kp, self.kd, mode_machine)
                 elif self.mode is Mode.POLICY:
                     odometry = (self.odometry.read() if self.odometry is not None and self.stepper.odometry_due()
                                 else None)
@@ -230,13 +240,15 @@ class G1Controller:
                     self.report.step_latency_s.append(time.monotonic() - t0)
                     self.report.phases.append(out.phase)
                     self.report.state_ticks.append(last_tick)
-                    over = ("done" if out.phase >= 1.0 - 1e-6
+                    over = ("done" if out.phase >= self.handoff_phase - 1e-6
                             else "max_steps" if self.stepper.steps >= self.max_policy_steps else None)
                     if over is not None:
-                        finishing, ramp_from = over, target
+                        finishing = over
                         self._enter(Mode.STAND)
+                        self.balance.reset()
                         if self.safety.hold_after_s is None:
-                            self.log(f"deploy: episode over ({over}); holding the default pose, Ctrl-C for damping")
+                            self.log(f"deploy: episode over ({over}); the balance policy holds the robot, "
+                                     f"Ctrl-C for damping")
                 self.tick += 1
                 if self.on_tick is not None:
                     self.on_tick(self)

@@ -1,8 +1,8 @@
 """The controller's modes and the watchdog that can send it to damping at any tick.
 
-Modes: DAMPING (start, kp = 0) → RAMP (measured pose → default pose, timed) → STAND (hold the
-default pose, wait for the go: a key or --go) → POLICY → STAND (after the episode: back to the
-default pose, held until Ctrl-C or for `hold_after_s`) → exit in DAMPING. A fault (LowState older
+Modes: DAMPING (start, kp = 0) → RAMP (measured pose → default pose, timed) → STAND (the balance
+policy holds the robot; the go, a key or --go, counts after `stand_s`) → POLICY (the task) → STAND
+(the balance policy again, until Ctrl-C or for `hold_after_s`) → exit in DAMPING. A fault (LowState older
 than `state_timeout_s`, a joint outside its range by more than `joint_margin_rad`, base tilt beyond
 `max_tilt_rad`) or Ctrl-C sends it to DAMPING and ends the run; nothing ever holds the last policy
 target.
@@ -29,8 +29,9 @@ class Mode(enum.Enum):
 class SafetyConfig:
     damping_s: float = 1.0  # damping at the start, before the ramp
     ramp_s: float = 3.0  # measured pose → default pose
-    hold_after_s: float | None = None  # default pose after the episode for this long, then damping and
-    #                                    exit; None: hold it until Ctrl-C (a robot left standing, not sinking)
+    stand_s: float = 2.0  # the balance policy holds the robot at least this long before a go counts
+    hold_after_s: float | None = None  # the balance policy after the episode for this long, then damping and
+    #                                    exit; None: until Ctrl-C (a robot left standing, not sinking)
     state_timeout_s: float = 0.1  # LowState older than this → damping
     joint_margin_rad: float = 0.1  # measured joint beyond its limit by more than this → damping
     max_tilt_rad: float = 1.2  # base tilt (angle of gravity from the base's -z) beyond this → damping
@@ -38,7 +39,7 @@ class SafetyConfig:
     first_state_timeout_s: float = 5.0  # no LowState at all within this → exit
 
     def __post_init__(self):
-        for key in ("damping_s", "ramp_s", "hold_after_s", "damping_kd_scale"):
+        for key in ("damping_s", "ramp_s", "stand_s", "hold_after_s", "damping_kd_scale"):
             if getattr(self, key) is not None and not getattr(self, key) >= 0:
                 raise PipelineInputError("deploy", f"safety.{key}", f"must be >= 0, got {getattr(self, key)}")
         for key in ("state_timeout_s", "first_state_timeout_s", "joint_margin_rad", "max_tilt_rad"):

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.common.typed_config import replace_from_mapping
+from pipeline.envs.falls import SUCCESS_THRESHOLD_M
 
 ACTION_OFFSETS = ("feedforward", "reference", "default")  # what a zero action aims the joints at (EnvConfig)
 LOWER_BODY = ("pelvis", "left_hip", "left_knee", "left_ankle", "right_hip", "right_knee", "right_ankle")
@@ -51,6 +52,9 @@ class RewardWeights(PenaltyWeights):
     # fell before the landing (benchmarks/RESULTS.md, commit 9018155).
     root_tilt: float = 0.0
     root_ang_vel: float = 0.0
+    # sparse, when the phase ends alive (0 = off): upright and slow there, where the balance policy takes the
+    # robot over (export/chain.py), as skill chaining makes one skill end inside the next one's starting set
+    handoff: float = 0.0
 
 
 @dataclass
@@ -71,6 +75,8 @@ class KernelSigmas:
     # (benchmarks/RESULTS.md, commit 8523f33).
     feet_pos: float = 0.3
     root_tilt: float = 0.1  # |Δ gravity_xy|², unitless: 0.3 off (a 17° lean) pays exp(−0.9) = 0.41
+    handoff_tilt: float = 0.05  # |g_xy|² at the handoff: a 13° lean pays exp(−1)
+    handoff_speed: float = 0.25  # (m/s)² of the base's horizontal speed at the handoff
     root_ang_vel: float = 4.0  # |Δω|² in (rad/s)²: 2 rad/s off pays exp(−1) = 0.37
 
 
@@ -269,7 +275,7 @@ class SamplingConfig:
     # tighter than the test mid-run) ended with every keyframe so far within the test is left out:
     # nothing says it would have failed (mid-run that termination ends about half of the episodes).
     judge: str = "termination"
-    success_threshold_m: float = 1.0  # the evaluation's (evaluate.success_threshold_m)
+    success_threshold_m: float = SUCCESS_THRESHOLD_M  # the evaluation's (evaluate.success_threshold_m)
 
 
 @dataclass

@@ -303,6 +303,9 @@ class TrackingEnv(TrackingReference, TrackingResets, RobotEnv):
         terminated = terminated | by_tilt | by_height
         truncated = (phase >= 1.0 - _EPS) & ~terminated
         sparse = sparse + w.termination * terminated.to(torch.float32)
+        if w.handoff:  # arriving where the balance policy can take over: upright and slow when the phase ends
+            still = torch.exp(-(gravity[:, :2] ** 2).sum(-1) / s2.handoff_tilt - (qvel[:, 0:2] ** 2).sum(-1) / s2.handoff_speed)
+            sparse = sparse + torch.where(truncated, w.handoff * still, 0.0)
         return {
             "dense": dense, "sparse": sparse, "terms": terms,
             "terminated": terminated, "truncated": truncated,

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.envs.falls import SUCCESS_THRESHOLD_M
 
 
 @dataclass(frozen=True)
@@ -25,12 +26,15 @@ class EvalConfig:
     runs: int = 3  # mean ± std over runs with different seeds (equal unless randomisation or sampling is on)
     num_envs: int = 32
     seed: int = 0
-    success_threshold_m: float = 1.0
+    success_threshold_m: float = SUCCESS_THRESHOLD_M
     ranges: tuple[str, ...] = ("easy", "hard")
     psi_grid_points: int = 9  # plots vs ψ: uniform grid over the union of the ranges
     adapter_psi_points: int = 4  # ψ values in the adapters' behaviour figure
     domain_randomization: bool = False
     deterministic: bool = True
+    # rest_to_rest: chains (stand → go → task → balance, export/chain.py) per range, nominal and under the
+    # paper's domain randomisation (metrics_dr.json), at ψ spread evenly inside each range
+    chain_episodes_per_range: int = 32
     backend: str = "cpu"
     device: str = "cpu"
     video: VideoConfig = field(default_factory=VideoConfig)
@@ -50,6 +54,7 @@ class EvalConfig:
     def validate(self, where: str = "evaluate") -> None:
         positive = {
             "episodes_per_range": self.episodes_per_range, "runs": self.runs, "num_envs": self.num_envs,
+            "chain_episodes_per_range": self.chain_episodes_per_range,
             "psi_grid_points": self.psi_grid_points,
             "adapter_psi_points": self.adapter_psi_points, "video.width": self.video.width,
             "video.height": self.video.height, "video.fps": self.video.fps,

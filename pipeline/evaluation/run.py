@@ -57,7 +57,7 @@ def _expectations(env_cfg, data) -> dict:
 
 
 def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalConfig, policy_dir: str | Path,
-                     out_dir: str | Path, videos: bool = True) -> dict:
+                     out_dir: str | Path, videos: bool = True, balance_export: str | Path | None = None) -> dict:
     module, meta = load_checked_policy(policy_dir, task, _expectations(env_cfg, data))
     policy = PolicyRunner(module, eval_cfg.device, eval_cfg.deterministic)
     make_env = default_env_factory(env_cfg, eval_cfg)
@@ -72,6 +72,14 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if balance_export is not None:  # the chain from the stance at rest: rest_to_rest, nominal and randomised
+        nominal, randomised = evaluate_rest_to_rest(task=task, variant=variant, data=data, env_cfg=env_cfg,
+                                                    eval_cfg=eval_cfg, policy_dir=policy_dir,
+                                                    balance_export=balance_export, psi_ranges=result.psi_ranges)
+        for name, rates in nominal["ranges"].items():
+            doc["ranges"].setdefault(name, {}).update({k: rates[k] for k in ("rest_to_rest", "standing")})
+        doc["chain"] = {k: nominal[k] for k in ("chain", "endings")}
+        write_metrics(out_dir / "metrics_dr.json", chain_document(task, variant, randomised))
     write_metrics(out_dir / "metrics.json", doc)
     write_per_psi(out_dir / "per_psi.csv", rows, out_dir / "per_psi.json")
     with atomic_dir(out_dir / "media") as media:
@@ -85,6 +93,34 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
             for name, psi in _video_psi(eval_cfg, result.psi_ranges):
                 render_rollout_video(policy, data, psi, make_env, media / f"{name}_psi{psi:.2f}.mp4", eval_cfg)
     return doc
+
+
+def evaluate_rest_to_rest(*, task, variant, data, env_cfg, eval_cfg: EvalConfig, policy_dir, balance_export,
+                          psi_ranges) -> tuple[dict, dict]:
+    """The chain's evaluation (evaluation/chain_eval.py) of the policy exported with the balance policy into a
+    scratch folder: (nominal, under the paper's domain randomisation)."""
+    import tempfile
+
+    from pipeline.envs.config import RandomizationConfig
+    from pipeline.evaluation.chain_eval import evaluate_chain
+    from pipeline.export.onnx_export import export_variant
+
+    with tempfile.TemporaryDirectory(prefix="adamimic-chain-") as scratch:
+        export = Path(scratch) / "export"
+        export_variant(task=task, variant=variant, data=data, policy_dir=policy_dir, out_dir=export, env_cfg=env_cfg,
+                       balance_export=balance_export)
+        per_range = eval_cfg.chain_episodes_per_range
+        nominal = evaluate_chain(export, psi_ranges, per_range, seed=eval_cfg.seed)
+        randomised = evaluate_chain(export, psi_ranges, per_range, randomization=RandomizationConfig(), seed=eval_cfg.seed)
+    return nominal, randomised
+
+
+def chain_document(task: str, variant: str, chain: dict) -> dict:
+    """metrics_dr.json: the chain under domain randomisation, in metrics.json's layout (`ranges.<r>.<rate>.mean`)."""
+    return {"task": task, "variant": variant, "domain_randomization": chain["domain_randomization"],
+            "ranges": chain["ranges"], "chain": chain["chain"], "endings": chain["endings"],
+            "episodes": [{k: e[k] for k in ("psi", "range", "success", "standing", "rest_to_rest", "end", "ended_in")}
+                         for e in chain["episodes"]]}
 
 
 def funnel_rows(episodes, data, threshold: float) -> list[dict]:

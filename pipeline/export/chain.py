@@ -196,8 +196,8 @@ class ChainRunner:
         delay.hold(data.qpos[7:])
         targets = self.task.keyframe_targets(psi)
         judge = EpisodeJudge(m, psi, targets)
-        steps = {"stand": int(round(chain["stand_s"] / self.control_dt)), "task": 0,
-                 "balance": int(round(chain["after_s"] / self.control_dt))}
+        stand_steps, after_steps = int(round(chain["stand_s"] / self.control_dt)), int(round(chain["after_s"] / self.control_dt))
+        steps = {"stand": 0, "task": 0, "balance": 0}  # control steps each stretch ran
         counter = {"step": 0}
 
         def advance(stepper, stretch: str, **extra) -> object:
@@ -208,6 +208,7 @@ class ChainRunner:
                 data.ctrl[actuators] = delay.applied()
                 mujoco.mj_step(model, data)
             counter["step"] += 1
+            steps[stretch] += 1
             if on_step is not None:
                 on_step(model, data, {"stretch": stretch, "phase": out.phase if stretch == "task" else None,
                                       "psi": psi, "keyframe_targets": targets, "step": counter["step"],
@@ -221,7 +222,7 @@ class ChainRunner:
                                list(judge.errors), dict(steps), data.qpos[0:3].tolist())
 
         self.balance.reset()
-        for _ in range(steps["stand"]):
+        for _ in range(stand_steps):
             advance(self.balance, "stand", psi=0.0)
             fallen = balance_fallen(model, data.qpos, self.balance_meta["terminations"])
             if fallen is not None:
@@ -233,7 +234,6 @@ class ChainRunner:
         while True:
             odometry = rotate_z(data.qpos[0:3] - origin, -origin_yaw) if task.odometry_due() else None
             out = advance(task, "task", psi=psi, odometry=odometry)
-            steps["task"] += 1
             verdict = judge.update(out.phase, data.site_xpos[sites], state.projected_gravity(), float(data.qpos[2]))
             if verdict not in (None, "done"):
                 return finish(verdict, "task")
@@ -243,7 +243,7 @@ class ChainRunner:
                 return finish("max_steps", "task")
 
         self.balance.reset()
-        for _ in range(steps["balance"]):
+        for _ in range(after_steps):
             advance(self.balance, "balance", psi=0.0)
             fallen = balance_fallen(model, data.qpos, self.balance_meta["terminations"])
             if fallen is not None:

@@ -30,6 +30,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from pipeline.envs.falls import SUCCESS_THRESHOLD_M
 from pipeline.envs.feedforward import zero_action_targets
 from pipeline.keyframes.tracking_data import TrackingData
 from pipeline.robot.g1 import RobotConfig
@@ -217,6 +218,6 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
         "initial_state": {"qpos": start.tolist(), "qvel": qvel0.tolist()},
         "terminations": terminations or termination_metadata(task=task),
         "reference": reference,
-        "success_threshold_m": 1.0,
+        "success_threshold_m": SUCCESS_THRESHOLD_M,
         "terrain": terrain or {"geoms": [], "psi_grid": [], "layouts": []},
     }

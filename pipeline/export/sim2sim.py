@@ -22,6 +22,7 @@ import mujoco
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
+from pipeline.envs.falls import SUCCESS_THRESHOLD_M, fall_flags
 from pipeline.export.policy_step import METADATA_NAME, PolicyStepper, projected_gravity, rotate_z, yaw_of
 
 ONNX_NAME = "policy.onnx"
@@ -48,7 +49,8 @@ def load_exported(policy_dir: str | Path, *, task: str | None = None, robot: str
         meta = json.loads(meta_path.read_text())
     except json.JSONDecodeError as error:
         raise PipelineInputError(meta_path, None, f"not valid JSON ({error})") from None
-    for key in ("robot", "task", "joint_names", "observation", "keyframes", "phase"):
+    task_keys = ("keyframes",) if meta.get("kind") != "balance" else ()  # a balance policy has no keyframes
+    for key in ("robot", "task", "joint_names", "observation", "phase", *task_keys):
         if key not in meta:
             raise PipelineInputError(meta_path, key, "missing from the policy metadata")
     if task is not None and meta["task"] != task:
@@ -181,15 +183,11 @@ class FallCheck:
         tilt_xy = np.asarray(gravity[:2], dtype=np.float64)
         if self.ref_gravity_xy is not None:
             tilt_xy = tilt_xy - self.ref_gravity_xy[frame]
-        if float(tilt_xy @ tilt_xy) > self.max_tilt**2:
-            return "tilt"
-        if self.min_base_height is not None:
-            min_height = self.min_base_height
-            if self.ref_root_height is not None:
-                min_height = min(min_height, self.ref_root_height[frame] - self.base_height_margin)
-            if base_height < min_height:
-                return "height"
-        return None
+        min_height = self.min_base_height
+        if min_height is not None and self.ref_root_height is not None:
+            min_height = min(min_height, self.ref_root_height[frame] - self.base_height_margin)
+        by_tilt, by_height = fall_flags(tilt_xy, base_height, self.max_tilt, min_height)
+        return "tilt" if by_tilt else "height" if by_height else None
 
 
 # ------------------------------------------------------------------------------ judging
@@ -201,7 +199,7 @@ class EpisodeJudge:
         self.keyframe_phases = np.asarray(meta["keyframes"]["phases"])
         self.targets = keyframe_targets  # (K, B, 3)
         self.error_limit = (meta.get("terminations") or {}).get("keyframe_body_error_m")
-        self.threshold = float(meta.get("success_threshold_m", 1.0))
+        self.threshold = float(meta.get("success_threshold_m", SUCCESS_THRESHOLD_M))
         self.fall = FallCheck.from_metadata(meta, psi)
         self.num_frames = int(meta["phase"]["num_frames"])
         self.errors: list[float] = []

@@ -123,7 +123,7 @@ class TerrainConfig:
 
 @dataclass(frozen=True)
 class ClipWindow:
-    """The seconds of the (retargeted) clip a task trains on: `clip: {start_s, end_s}`.
+    """The seconds of the (retargeted) clip a task trains on: `clip: {start_s, end_s, lead_in_s}`.
 
     A long take trains on its interesting part (the jump, not the walk to it): every later stage sees
     only the window, and times elsewhere in the task (listed keyframes, flights) count from its start.
@@ -132,6 +132,9 @@ class ClipWindow:
 
     start_s: float = 0.0
     end_s: float | None = None
+    # Seconds from the stance at rest to the window's first frame, prepended after the keyframes are chosen
+    # (keyframes/lead_in.py): the task then starts where a standing robot is. 0: none.
+    lead_in_s: float = 0.0
 
     def frames(self, fps: float, num_frames: int, task: str) -> tuple[int, int]:
         """The window as a slice [start, stop) of a clip with `num_frames` frames at `fps`."""
@@ -410,14 +413,14 @@ _TASK_KEYS = {"input", "keyframes", "edit", "psi", "sparse_scale", "terrain", "n
 def _parse_clip(name: str, raw) -> ClipWindow:
     if raw is None:
         return ClipWindow()
-    _check_keys(name, "clip", raw, {"start_s", "end_s"})
+    _check_keys(name, "clip", raw, {"start_s", "end_s", "lead_in_s"})
     start = _number(name, "clip.start_s", raw.get("start_s", 0.0), nonneg=True)
     end = raw.get("end_s")
     if end is not None:
         end = _number(name, "clip.end_s", end, positive=True)
         if end <= start:
             raise _err(name, "clip.end_s", f"must be after clip.start_s ({start} s), got {end}")
-    return ClipWindow(start, end)
+    return ClipWindow(start, end, _number(name, "clip.lead_in_s", raw.get("lead_in_s", 0.0), nonneg=True))
 
 
 def _parse_push_prior(name: str, raw, edit: EditConfig) -> PushPriorConfig:

@@ -13,6 +13,7 @@ from pipeline.keyframes.config import TaskConfig
 from pipeline.keyframes.datasets import write_tracking_dataset
 from pipeline.keyframes.edit import build_tracking_data
 from pipeline.keyframes.figure import keyframe_figure, rule_video
+from pipeline.keyframes.lead_in import with_lead_in
 from pipeline.keyframes.select import select_keyframes
 from pipeline.motion.motion import Motion
 
@@ -28,6 +29,11 @@ def build_task_outputs(motion: Motion, task: TaskConfig, out_dir: str | Path, nu
     table = select_keyframes(motion, task)
     edit = build_tracking_data(motion, task, table, "edit", num_samples, seed)
     rule = build_tracking_data(motion, task, table, "rule", num_samples, seed)
+    if task.clip.lead_in_s > 0:  # from the stance at rest; the table's frames stay the window's (keyframes.json says)
+        edit, rule = with_lead_in(edit, task.clip.lead_in_s), with_lead_in(rule, task.clip.lead_in_s)
+        frames = int(round(task.clip.lead_in_s * motion.fps))
+        window["lead_in"] = {"seconds": frames / motion.fps, "frames": frames,
+                             "note": "the datasets' frames are this table's plus `frames`"}
     paths = {"d_edit": out_dir / "d_edit", "d_rule": out_dir / "d_rule", "keyframes": out_dir / "keyframes.json",
              "figure": out_dir / "keyframes.png"}
     write_tracking_dataset(paths["d_edit"], edit)

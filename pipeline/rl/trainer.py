@@ -32,6 +32,7 @@ from tqdm import tqdm
 from pipeline.common.atomic import atomic_file, write_text_atomic
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs.config import start_episodes_at_zero
+from pipeline.envs.falls import SUCCESS_THRESHOLD_M
 from pipeline.rl.amp import AMPDiscriminator, JointWindow, reference_windows
 from pipeline.rl.averaging import WeightAverage
 from pipeline.rl.checkpoint import CheckpointManager, check_compatible, load_policy, read_meta, rng_state, save_policy, set_rng_state
@@ -41,7 +42,7 @@ from pipeline.rl.networks import DoubleCritic, Stage1Policy
 from pipeline.rl.ppo import GROUPS, PPO, Rollout
 from pipeline.rl.stage2 import Stage2Policy
 
-SUCCESS_ERROR_M = 1.0  # issue 7: an episode fails if the mean body error exceeds 1 m at a keyframe
+SUCCESS_ERROR_M = SUCCESS_THRESHOLD_M  # an episode fails if the mean body error exceeds it at a keyframe
 MAX_PENDING_STEPS = 256  # steps of finished-episode figures kept on the device before a read-back
 CURRICULUM_HOOKS = ("update_termination_curriculum", "update_curriculum", "set_training_progress")
 

@@ -1,0 +1,166 @@
+"""The chain an export holds (stand → go → task → balance), its judge, and its refusals."""
+
+import json
+import shutil
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from pipeline.common.errors import PipelineInputError
+from pipeline.export.chain import CHAIN_NAME, ChainRunner, judge_standing, read_chain, stance_state, write_chain
+
+
+class StillNet(nn.Module):
+    """A stand-in balance network: a zero action, whatever it observes."""
+
+    def forward(self, obs):
+        return torch.zeros(obs.shape[0], 27) + 0.0 * obs[:, :1]
+
+
+def standin_balance_export(folder):
+    """A balance export with the real metadata contract and a network that never moves (tests only)."""
+    from pipeline.balance.config import BalanceConfig
+    from pipeline.balance.export import balance_metadata
+    from pipeline.envs.balance_env import balance_actuation
+    from pipeline.export.onnx_export import DeployedPolicy, export_folder
+    from pipeline.robot.g1 import load_robot_config
+
+    robot, cfg = load_robot_config(), BalanceConfig()
+    meta = balance_metadata(cfg, robot)
+    target, scale = balance_actuation(cfg.env, robot)
+    meta["action_scale"], meta["stance"]["joint_target"] = scale.tolist(), target.tolist()
+    module = DeployedPolicy(StillNet(), target, scale)
+    return export_folder(module, meta["observation"]["dim"], meta, folder).folder
+
+
+def chained_export(task_export, folder, balance=None, **chain):
+    """A copy of `task_export` with a balance export and chain.json."""
+    shutil.copytree(task_export, folder)
+    balance = balance or standin_balance_export(folder.parent / f"{folder.name}_balance")
+    write_chain(folder, balance, **chain)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def chain_export(tmp_path_factory):
+    from test_export import ComposedStandIn, _tracking_data
+
+    from pipeline.export.metadata import build_metadata, observation_layout
+    from pipeline.export.onnx_export import DeployedPolicy, export_folder
+    from pipeline.robot.g1 import load_robot_config
+
+    torch.manual_seed(0)
+    cfg = load_robot_config()
+    layout = observation_layout(cfg, history=5)
+    module = DeployedPolicy(ComposedStandIn(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
+    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(), obs_layout=layout)
+    root = tmp_path_factory.mktemp("chain")
+    task = export_folder(module, layout["dim"], meta, root / "task").folder
+    return chained_export(task, root / "export", stand_s=0.4, after_s=0.4)
+
+
+def test_the_chain_starts_standing_at_rest_and_runs_stand_task_balance(chain_export):
+    runner = ChainRunner(chain_export)
+    seen = []
+
+    def on_step(model, data, info):
+        if not seen:
+            seen.append(("first", data.qpos.copy(), data.qvel.copy()))
+        seen.append((info["stretch"], info["phase"]))
+
+    result = runner.run(1.4, on_step=on_step)
+    stretches = [s for s, _ in seen[1:]]
+    assert stretches[:20] == ["stand"] * 20 and stretches.count("stand") == result.steps["stand"] == 20
+    assert stretches[20] == "task" and result.steps["task"] == stretches.count("task")
+    # the robot starts in the default pose at the task's start, not in the policy's trained state
+    meta = json.loads((chain_export / "policy.json").read_text())
+    first_qpos = seen[0][1]
+    assert np.allclose(first_qpos[7:], meta["default_joint_pos"], atol=0.05)
+    assert np.allclose(first_qpos[:2], meta["initial_state"]["qpos"][:2], atol=0.05)
+    if result.ended_in == "balance":  # handed over: phase 1 reached, then the balance policy
+        assert seen[20 + result.steps["task"]][1] >= 1.0 - 1e-6
+        assert stretches[-1] == "balance"
+    assert result.rest_to_rest == (result.success and result.standing)
+    assert set(result.to_json()) >= {"psi", "success", "standing", "rest_to_rest", "keyframe_errors", "end"}
+
+
+def test_judge_standing_reads_tilt_height_and_speed():
+    from pipeline.robot.g1 import build_model, default_qpos
+
+    model = build_model()
+    qpos, qvel = default_qpos(), np.zeros(model.nv)
+    assert judge_standing(model, qpos, qvel)
+    moving = qvel.copy()
+    moving[0] = 0.5
+    assert not judge_standing(model, qpos, moving)
+    low = qpos.copy()
+    low[2] = 0.4
+    assert not judge_standing(model, low, qvel)
+    tilted = qpos.copy()
+    tilted[3:7] = [np.cos(0.3), np.sin(0.3), 0.0, 0.0]  # 34° about x
+    assert not judge_standing(model, tilted, qvel)
+
+
+def test_stance_state_stands_on_the_ground_under_the_start(chain_export):
+    from pipeline.export.sim2sim import build_scene
+
+    meta = json.loads((chain_export / "policy.json").read_text())
+    model = build_scene(meta, 1.4)
+    qpos, qvel = stance_state(meta, model, 0.76)
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_forward(model, data)
+    assert qvel.max() == 0 and abs(qpos[2] - 0.76) < 1e-9  # flat start
+
+
+def test_an_export_without_its_balance_policy_is_refused(chain_export, tmp_path):
+    bare = tmp_path / "bare"
+    shutil.copytree(chain_export, bare)
+    (bare / CHAIN_NAME).unlink()
+    with pytest.raises(PipelineInputError, match="chain.json.*no balance policy"):
+        ChainRunner(bare)
+    missing = tmp_path / "missing"
+    shutil.copytree(chain_export, missing)
+    shutil.rmtree(missing / "balance")
+    with pytest.raises(PipelineInputError, match="balance.*holds no balance policy.onnx"):
+        read_chain(missing)
+
+
+def test_a_handoff_past_the_end_of_the_task_is_refused(chain_export, tmp_path):
+    late = tmp_path / "late"
+    shutil.copytree(chain_export, late)
+    chain = json.loads((late / CHAIN_NAME).read_text())
+    (late / CHAIN_NAME).write_text(json.dumps(dict(chain, handoff_phase=1.2)))
+    with pytest.raises(PipelineInputError, match="handoff_phase.*past the end of the task"):
+        ChainRunner(late)
+
+
+def test_export_without_the_balance_export_writes_nothing(tmp_path):
+    from test_export import ComposedStandIn, _tracking_data
+
+    from pipeline.export.metadata import build_metadata, observation_layout
+    from pipeline.export.onnx_export import DeployedPolicy, export_folder
+    from pipeline.robot.g1 import load_robot_config
+
+    cfg = load_robot_config()
+    layout = observation_layout(cfg, history=5)
+    module = DeployedPolicy(ComposedStandIn(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
+    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(), obs_layout=layout)
+    with pytest.raises(PipelineInputError, match="balance policy's export is missing"):
+        export_folder(module, layout["dim"], meta, tmp_path / "out", balance_export=tmp_path / "nowhere")
+    assert not (tmp_path / "out").exists()
+
+
+def test_delayed_targets_apply_what_was_sent_that_long_ago():
+    from pipeline.export.chain import DelayedTargets
+
+    delay = DelayedTargets(0.012, 0.005)  # 2 substeps (rounded)
+    delay.hold(np.zeros(1))
+    applied = []
+    for step in range(3):
+        delay.send(np.array([step + 1.0]))
+        applied += [float(delay.applied()[0]) for _ in range(4)]
+    assert applied == [0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3]
