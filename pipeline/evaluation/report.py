@@ -160,6 +160,41 @@ def results_table(docs: dict[str, dict]) -> str:
     return "\n".join(lines) + "\n" + note + "".join(funnels)
 
 
+def rest_to_rest_table(docs: dict[str, dict], randomised: dict[str, dict]) -> str:
+    """Markdown: the chain from the stance at rest (export/chain.py), per variant and range: `rest_to_rest` and
+    its parts (the paper's success on the task stretch, standing after it), nominal and under the paper's
+    domain randomisation (metrics_dr.json). Empty when no variant was evaluated as a chain."""
+    chained = {v: d for v, d in docs.items() if "rest_to_rest" in d["ranges"].get("overall", {})}
+    if not chained:
+        return ""
+    groups = [g for g in RANGE_ORDER if any(g in d["ranges"] for d in chained.values())]
+    lines = ["\n## From rest to rest\n",
+             "The chain a robot runs: the balance policy holds the stance at rest, the task policy runs on the go, the "
+             "balance policy takes over when the task's phase ends. `rest_to_rest` (%): every keyframe within 1 m and "
+             "standing 3 s after the handoff (|g_xy| < 0.3, pelvis ≥ 0.55 m above the ground, base speed < 0.2 m/s, no "
+             "fall before); in brackets the task stretch's success / standing. DR: under the paper's domain "
+             "randomisation.\n",
+             "| Method | " + " | ".join(f"{g} rest_to_rest" for g in groups) + " | " +
+             " | ".join(f"{g} DR" for g in groups) + " |", "|---|" + "---|" * (2 * len(groups))]
+
+    def cell(doc: dict | None, g: str) -> str:
+        r = (doc or {}).get("ranges", {}).get(g, {})
+        if "rest_to_rest" not in r:
+            return "–"
+        success = r.get("chain_success", r.get("success", {})).get("mean", float("nan"))  # metrics_dr.json: the chain's own
+        return f"{r['rest_to_rest']['mean']:.1f} ({success:.0f} / {r.get('standing', {}).get('mean', float('nan')):.0f})"
+
+    for variant, doc in chained.items():
+        lines.append(f"| {variant} | " + " | ".join(cell(doc, g) for g in groups) + " | " +
+                     " | ".join(cell(randomised.get(variant), g) for g in groups) + " |")
+        endings = doc.get("chain", {}).get("endings")
+        if endings:
+            lines.append("")
+            lines.append(f"{variant}, where the chains ended (stretch:check, episodes): " +
+                         ", ".join(f"{k} {v}" for k, v in endings.items()))
+    return "\n".join(lines) + "\n"
+
+
 def funnel_table(variant: str, rows: list[dict]) -> str:
     """Markdown: where the variant's episodes end, keyframe by keyframe (run.funnel_rows)."""
     lines = [f"\n## {variant}: keyframe by keyframe\n",
@@ -267,8 +302,11 @@ def write_report(task: str, variants: list[str], results_dir: str | Path, out_di
                 by_seed[seed] = _load_metrics(results_dir / variant / "seeds" / str(seed) / "metrics.json",
                                               f"variant {variant!r} at training seed {seed} (run evaluate_seed)")
             summaries[variant] = seed_summary(by_seed)
+    randomised = {v: json.loads((results_dir / v / "metrics_dr.json").read_text()) for v in variants
+                  if (results_dir / v / "metrics_dr.json").is_file()}
     out_dir.mkdir(parents=True, exist_ok=True)
-    table = f"# {task}\n\n" + results_table(docs) + (seeds_table(summaries) if len(seeds) > 1 else "")
+    table = (f"# {task}\n\n" + results_table(docs) + rest_to_rest_table(docs, randomised)
+             + (seeds_table(summaries) if len(seeds) > 1 else ""))
     write_text_atomic(out_dir / "table.md", table)
     if summaries:
         write_text_atomic(out_dir / "seeds.json", json.dumps(summaries, indent=1))

@@ -31,7 +31,8 @@ from pathlib import Path
 from pipeline.common.atomic import atomic_file, write_text_atomic
 from pipeline.common.errors import PipelineInputError
 from pipeline.evaluation.metrics import METRIC_NAMES
-from pipeline.evaluation.report import RANGE_ORDER, _cell, endings_line, seeds_table
+from pipeline.evaluation.balance_section import balance_section, is_balance_policy, read_balance_metrics
+from pipeline.evaluation.report import RANGE_ORDER, _cell, endings_line, rest_to_rest_table, seeds_table
 
 PAPER_TITLE = "Towards Adaptable Humanoid Control via Adaptive Motion Tracking"
 MAX_IMAGE_BYTES = 300_000  # every image this page commits stays below this
@@ -139,13 +140,17 @@ class Found:
     pretrained: list[Evaluated]  # under models/pretrained/
     recipes: list[Recipe]  # models/pretrained/ folders with no policy yet
     seeds: dict[str, dict]  # task -> reports/<task>/seeds.json (the spread over training seeds)
+    balance: list[tuple[Path, dict]] = field(default_factory=list)  # (folder, metrics.json) of balance policies
 
 
 def find_results(root: Path) -> Found:
     results = [_evaluated(path.parent, path.parent.parent.name, path.parent.name)
                for path in sorted((root / "results").glob("*/*/metrics.json"))]
-    pretrained, recipes = [], []
+    pretrained, recipes, balance = [], [], []
     for folder in sorted(p for p in (root / "models" / "pretrained").glob("*") if p.is_dir()):
+        if is_balance_policy(folder):
+            balance.append((folder, read_balance_metrics(folder / "metrics.json")))
+            continue
         found = sorted(folder.glob("metrics.json")) + sorted(folder.glob("*/metrics.json"))
         if not found:
             recipes.append(Recipe(folder.name, folder))
@@ -155,7 +160,7 @@ def find_results(root: Path) -> Found:
             pretrained.append(_evaluated(path.parent, doc.get("task") or folder.name, variant, doc))
     seeds = {task: read_seeds(path) for task in sorted({e.task for e in results})
              if (path := root / "reports" / task / "seeds.json").is_file()}
-    return Found(results, pretrained, recipes, seeds)
+    return Found(results, pretrained, recipes, seeds, balance)
 
 
 # ------------------------------------------------------------------------------------------ images
@@ -318,6 +323,11 @@ def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list
         source = root / "reports" / task / "seeds.json"
         out += [seeds_table(seeds, heading="###").strip(), "",
                 f"From [`{source.relative_to(root).as_posix()}`]({_link(root, source, page.parent)}).", ""]
+    chain = rest_to_rest_table({e.variant: e.metrics for e in entries},
+                               {e.variant: json.loads((e.folder / "metrics_dr.json").read_text()) for e in entries
+                                if (e.folder / "metrics_dr.json").is_file()})
+    if chain:
+        out += [chain.strip().replace("## From rest to rest", "### From rest to rest"), ""]
     for e in entries:
         if e.metrics.get("endings"):
             out += [f"{e.variant}. {endings_line(e.metrics['endings'])}", ""]
@@ -378,6 +388,8 @@ def render_page(root: Path, page: Path, img_dir: Path, found: Found) -> str:
     for task, entries in pre_by_task.items():
         out += task_section(root, page, img_dir, f"{task} (pretrained)" if task in by_task else task, entries,
                             "A committed policy under `models/pretrained/`")
+    for folder, doc in found.balance:
+        out += balance_section(root, page, folder, doc)
     if not by_task and not pre_by_task:
         out += ["No evaluated policy yet: `dvc repro` writes `results/<task>/<variant>/metrics.json`.", ""]
     if recipes:

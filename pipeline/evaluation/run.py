@@ -77,7 +77,9 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
                                                     eval_cfg=eval_cfg, policy_dir=policy_dir,
                                                     balance_export=balance_export, psi_ranges=result.psi_ranges)
         for name, rates in nominal["ranges"].items():
-            doc["ranges"].setdefault(name, {}).update({k: rates[k] for k in ("rest_to_rest", "standing")})
+            # the chain's own task-stretch success beside the paper's (from the trained start, above)
+            doc["ranges"].setdefault(name, {}).update(rest_to_rest=rates["rest_to_rest"], standing=rates["standing"],
+                                                      chain_success=rates["success"])
         doc["chain"] = {k: nominal[k] for k in ("chain", "endings")}
         write_metrics(out_dir / "metrics_dr.json", chain_document(task, variant, randomised))
     write_metrics(out_dir / "metrics.json", doc)
