@@ -25,6 +25,7 @@ from pipeline.evaluation.metrics import (
     bin_by_psi,
     pooled_episodes,
 )
+from pipeline.evaluation.paper import FIGURES, paper_section
 
 RANGE_ORDER = ("easy", "hard", "overall")
 
@@ -283,9 +284,10 @@ def _load_metrics(path: Path, what: str) -> dict:
 
 
 def write_report(task: str, variants: list[str], results_dir: str | Path, out_dir: str | Path,
-                 seeds: tuple[int, ...] | list[int] = ()) -> Path:
-    """reports/<task>/: table.md over the variants evaluated, per-ψ figure of all variants, and
-    seeds.json: success over the training `seeds` (the first is the main run's train.seed, in
+                 seeds: tuple[int, ...] | list[int] = (), figures: str | Path = FIGURES) -> Path:
+    """reports/<task>/: table.md over the variants evaluated (then the rest-to-rest chains, the spread over
+    training seeds, and the paper's rows and claims from `figures`, evaluation/paper.py), per-ψ figure of all
+    variants, and seeds.json: success over the training `seeds` (the first is the main run's train.seed, in
     results/<task>/<variant>/; the others in results/<task>/<variant>/seeds/<seed>/)."""
     results_dir, out_dir = Path(results_dir), Path(out_dir)
     docs, rows, ranges, summaries = {}, {}, {}, {}
@@ -306,7 +308,7 @@ def write_report(task: str, variants: list[str], results_dir: str | Path, out_di
                   if (results_dir / v / "metrics_dr.json").is_file()}
     out_dir.mkdir(parents=True, exist_ok=True)
     table = (f"# {task}\n\n" + results_table(docs) + rest_to_rest_table(docs, randomised)
-             + (seeds_table(summaries) if len(seeds) > 1 else ""))
+             + (seeds_table(summaries) if len(seeds) > 1 else "") + paper_section(docs, figures))
     write_text_atomic(out_dir / "table.md", table)
     if summaries:
         write_text_atomic(out_dir / "seeds.json", json.dumps(summaries, indent=1))

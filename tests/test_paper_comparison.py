@@ -1,0 +1,64 @@
+"""The paper's rows beside ours and its claims, on made-up result folders and a made-up figures file."""
+
+import json
+
+import yaml
+
+from pipeline.evaluation.paper import load_paper_rows, paper_section
+from pipeline.evaluation.report import write_report
+
+PAPER = {"main_simulation": {"columns": ["success", "e_l_bpe", "e_g_bpe", "e_smth"], "rows": {
+    "adamimic": {"easy": [99.6, 30.3, 87.9, 16.0], "hard": [74.2, 30.3, 99.8, 17.3], "overall": [86.8, 30.3, 94.8, 16.6]},
+    "adamimic_stage1": {"easy": [96.7, 43.4, 188.1, 17.8], "hard": [75.2, 43.4, 211.8, 18.7],
+                        "overall": [85.7, 43.4, 200.4, 18.2]},
+    "deepmimic_adapt": {"easy": [95.8, 33.3, 123.6, 15.1], "hard": [74.8, 33.3, 142.8, 16.7],
+                        "overall": [85.1, 33.3, 133.5, 15.9]}}}}
+
+
+def _metrics(success, e_g_bpe):
+    stat = lambda m: {"mean": m, "std": 0.0}  # noqa: E731
+    ranges = {g: {"success": stat(success), "e_l_bpe": stat(40.0), "e_g_bpe": stat(e_g_bpe), "e_smth": stat(20.0),
+                  "episodes": {"total": 10, "runs": 1}} for g in ("easy", "hard", "overall")}
+    return {"task": "far_jump", "variant": "x", "psi_ranges": {"easy": [[0.7, 1.6]]}, "ranges": ranges}
+
+
+def _results(tmp_path, rows):
+    for variant, (success, e_g_bpe) in rows.items():
+        folder = tmp_path / "results" / variant
+        folder.mkdir(parents=True)
+        (folder / "metrics.json").write_text(json.dumps(_metrics(success, e_g_bpe)))
+    return tmp_path / "results"
+
+
+def test_our_rows_beside_the_papers_and_the_claims_checked(tmp_path):
+    figures = tmp_path / "figures.yaml"
+    figures.write_text(yaml.safe_dump(PAPER))
+    results = _results(tmp_path, {"adamimic": (90.0, 150.0), "adamimic_stage1": (95.0, 120.0),
+                                  "deepmimic_adapt": (80.0, 200.0)})
+    table = write_report("far_jump", ["adamimic", "adamimic_stage1", "deepmimic_adapt"], results, tmp_path / "out",
+                         figures=figures).read_text()
+    assert "| adamimic | 90.0 |" in table and "| adamimic (paper) | 99.6 | 30.3 | 87.9 | 16.0 | 74.2 |" in table
+    assert "Isaac Gym, 4096 envs" in table
+    # ours: the adapters did not lower E_g-bpe (150 > 120), keyframe edits did beat dense tracking (150 < 200)
+    assert "adamimic < adamimic_stage1): here does not hold; in the paper's rows holds" in table
+    assert "adamimic < deepmimic_adapt): here holds; in the paper's rows holds" in table
+    assert "freezing stage 1 beats not freezing it" in table and "not measured (a variant is missing)" in table
+    assert "at least every baseline's (deepmimic_adapt): here holds" in table
+
+
+def test_without_the_figures_file_the_report_says_so(tmp_path):
+    results = _results(tmp_path, {"adamimic": (90.0, 150.0)})
+    table = write_report("far_jump", ["adamimic"], results, tmp_path / "out", figures=tmp_path / "nowhere.yaml").read_text()
+    assert "The paper's figures file is not at" in table and "(paper)" not in table
+    assert load_paper_rows(tmp_path / "nowhere.yaml") is None
+
+
+def test_a_malformed_figures_file_names_the_key(tmp_path):
+    import pytest
+
+    from pipeline.common.errors import PipelineInputError
+
+    bad = tmp_path / "figures.yaml"
+    bad.write_text(yaml.safe_dump({"main_simulation": {"columns": ["success"], "rows": {}}}))
+    with pytest.raises(PipelineInputError, match="main_simulation.columns"):
+        paper_section({}, bad)
