@@ -44,22 +44,33 @@ def chained_export(task_export, folder, balance=None, **chain):
     return folder
 
 
-@pytest.fixture(scope="module")
-def chain_export(tmp_path_factory):
+def _standin_task():
+    """(deployed module, observation dim, metadata) of a far-jump export with a stand-in network and the real
+    metadata contract, as tests/test_export.py makes them."""
     from test_export import ComposedStandIn, _tracking_data
 
     from pipeline.export.metadata import build_metadata, observation_layout
-    from pipeline.export.onnx_export import DeployedPolicy, export_folder
+    from pipeline.export.onnx_export import DeployedPolicy
     from pipeline.robot.g1 import load_robot_config
 
     torch.manual_seed(0)
     cfg = load_robot_config()
     layout = observation_layout(cfg, history=5)
     module = DeployedPolicy(ComposedStandIn(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
-    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(), obs_layout=layout)
+    return module, layout["dim"], build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(),
+                                                 obs_layout=layout)
+
+
+def standin_task_export(folder):
+    from pipeline.export.onnx_export import export_folder
+
+    return export_folder(*_standin_task(), folder).folder
+
+
+@pytest.fixture(scope="module")
+def chain_export(tmp_path_factory):
     root = tmp_path_factory.mktemp("chain")
-    task = export_folder(module, layout["dim"], meta, root / "task").folder
-    return chained_export(task, root / "export", stand_s=0.4, after_s=0.4)
+    return chained_export(standin_task_export(root / "task"), root / "export", stand_s=0.4, after_s=0.4)
 
 
 def test_the_chain_starts_standing_at_rest_and_runs_stand_task_balance(chain_export):
@@ -139,18 +150,10 @@ def test_a_handoff_past_the_end_of_the_task_is_refused(chain_export, tmp_path):
 
 
 def test_export_without_the_balance_export_writes_nothing(tmp_path):
-    from test_export import ComposedStandIn, _tracking_data
+    from pipeline.export.onnx_export import export_folder
 
-    from pipeline.export.metadata import build_metadata, observation_layout
-    from pipeline.export.onnx_export import DeployedPolicy, export_folder
-    from pipeline.robot.g1 import load_robot_config
-
-    cfg = load_robot_config()
-    layout = observation_layout(cfg, history=5)
-    module = DeployedPolicy(ComposedStandIn(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
-    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(), obs_layout=layout)
     with pytest.raises(PipelineInputError, match="balance policy's export is missing"):
-        export_folder(module, layout["dim"], meta, tmp_path / "out", balance_export=tmp_path / "nowhere")
+        export_folder(*_standin_task(), tmp_path / "out", balance_export=tmp_path / "nowhere")
     assert not (tmp_path / "out").exists()
 
 

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.deploy.controller import G1Controller
@@ -36,22 +35,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def export(tmp_path_factory):
-    """A far-jump export (stand-in networks, the real metadata contract) with its chain: a stand-in balance
-    policy that never moves (tests/test_chain.py), as tests/test_export.py makes the task's."""
-    from test_chain import chained_export
-    from test_export import ComposedStandIn, _tracking_data
+    """A far-jump export with its chain, stand-in networks and the real metadata contract (tests/test_chain.py)."""
+    from test_chain import chained_export, standin_task_export
 
-    from pipeline.export.metadata import build_metadata, observation_layout
-    from pipeline.export.onnx_export import DeployedPolicy, export_folder
-    from pipeline.robot.g1 import load_robot_config
-
-    torch.manual_seed(0)
-    cfg = load_robot_config()
-    layout = observation_layout(cfg, history=5)
-    module = DeployedPolicy(ComposedStandIn(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
-    meta = build_metadata(task="far_jump", variant="adamimic", robot=cfg, data=_tracking_data(), obs_layout=layout)
     root = tmp_path_factory.mktemp("deploy")
-    return chained_export(export_folder(module, layout["dim"], meta, root / "task").folder, root / "export")
+    return chained_export(standin_task_export(root / "task"), root / "export")
 
 
 def _stance29(export, motors):

@@ -190,20 +190,10 @@ class BalanceEnv(RobotEnv):
             qvel[recorded] = self.start_states["qvel"][pick] * scale
         self.backend.set_state(ids, qpos, qvel, forward=False)  # observations read qpos/qvel only
         self._randomize_worlds(ids, self.stance_target)
-        self.episode_step[ids] = 0
-        self.prev_action[ids] = 0.0
-        self.prev_action2[ids] = 0.0
-        self.prev_joint_vel[ids] = qvel[:, 6:]
-        self.push_timer[ids] = self._push_interval(n)
+        self._restart_episodes(ids, qvel[:, 6:])
         gravity = projected_gravity(qpos[:, 3:7])
         contact = torch.zeros(n, 2, dtype=torch.bool, device=dev)  # not yet known before the first step
-        frame, privileged = self._features(qpos, qvel, gravity, contact, self.prev_action[ids])
-        hist = self.obs_history.clone()
-        hist[ids] = frame[:, None].expand(-1, self.cfg.observations.history, -1)
-        self.obs_history = hist
-        priv = self.privileged.clone()
-        priv[ids] = privileged
-        self.privileged = priv
+        self._restart_observations(ids, *self._features(qpos, qvel, gravity, contact, self.prev_action[ids]))
 
 
 __all__ = ["BalanceEnv", "PRIVILEGED_DIM"]

@@ -246,6 +246,23 @@ class RobotEnv:
                                                     rounding_mode="floor"), min=0)
         self.target_history[:, ids] = initial_target
 
+    def _restart_episodes(self, ids: torch.Tensor, joint_vel: torch.Tensor) -> None:
+        """The shared per-episode state of worlds `ids` at a reset (draws their next push's time)."""
+        self.episode_step[ids] = 0
+        self.prev_action[ids] = 0.0
+        self.prev_action2[ids] = 0.0
+        self.prev_joint_vel[ids] = joint_vel
+        self.push_timer[ids] = self._push_interval(ids.numel())
+
+    def _restart_observations(self, ids: torch.Tensor, frame_obs: torch.Tensor, privileged: torch.Tensor) -> None:
+        """Worlds `ids` start their history filled with their first frame (new tensors: callers hold the old)."""
+        hist = self.obs_history.clone()
+        hist[ids] = frame_obs[:, None].expand(-1, self.cfg.observations.history, -1)
+        self.obs_history = hist
+        priv = self.privileged.clone()
+        priv[ids] = privileged
+        self.privileged = priv
+
     # ------------------------------------------------------------------------------------ resume
     def _model_fields(self) -> list[str]:
         """The MjModel fields this env writes per world (the randomiser's; a task adds its own)."""

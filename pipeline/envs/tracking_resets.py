@@ -98,21 +98,12 @@ class TrackingResets:
         self.keyframe_missed[ids] = False
         self.phase[ids] = frame.to(torch.float64) / (self.num_frames - 1)
         self.next_kf[ids] = torch.searchsorted(self.kf_frames, frame, right=True)
-        self.episode_step[ids] = 0
-        self.prev_action[ids] = 0.0
-        self.prev_action2[ids] = 0.0
-        self.prev_joint_vel[ids] = qvel[:, 6:]
+        self._restart_episodes(ids, qvel[:, 6:])
         self.odom_origin[ids] = self.ref_root_pos[0] + self.offset_table[sample, 0]
         self.odom_origin_quat[ids] = yaw_quat(self.ref_root_quat[0])
-        self.push_timer[ids] = self._push_interval(n)
         frame_obs, privileged, odom = self._frame_features(ids)
         self.odometry[ids] = odom
-        hist = self.obs_history.clone()
-        hist[ids] = frame_obs[:, None].expand(-1, self.cfg.observations.history, -1)
-        self.obs_history = hist
-        priv = self.privileged.clone()
-        priv[ids] = privileged
-        self.privileged = priv
+        self._restart_observations(ids, frame_obs, privileged)
         if own is not None and own.numel():
             # the recorded world's phase, history and odometry, so the policy sees what it saw there
             # (episode_step restarts at 0: only the odometry's update cadence reads it)
