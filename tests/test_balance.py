@@ -81,8 +81,8 @@ def test_starts_in_recorded_states_and_curriculum_scales_them():
     env.reset()
     assert torch.allclose(env.backend.qvel[:, 0], torch.ones(8)) and torch.allclose(env.backend.qpos[:, 2], torch.full((8,), 0.7))
     assert env.update_curriculum(0.0) == 0.0 and env.push_scale == 0.0 and env.delay_scale == 0.0
-    env.reset()  # at difficulty 0: no recorded start
-    assert torch.allclose(env.backend.qvel[:, 0], torch.zeros(8))
+    env.reset()  # at difficulty 0: no recorded start, the stance (its noise is at most 0.3 m/s)
+    assert (env.backend.qvel[:, 0].abs() <= 0.3 + 1e-6).all() and torch.allclose(env.backend.qpos[:, 2], torch.full((8,), 0.76))
     assert env.update_curriculum(1.0) == 1.0
 
 

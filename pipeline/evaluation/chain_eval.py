@@ -66,3 +66,37 @@ def evaluate_chain(export_dir: str | Path, psi_ranges: dict, episodes_per_range:
         endings[key] = endings.get(key, 0) + 1
     return {"chain": runner.chain, "domain_randomization": randomization is not None, "seed": seed,
             "ranges": ranges, "endings": dict(sorted(endings.items())), "episodes": episodes}
+
+
+def add_chain_metrics(folder: str | Path, episodes_per_range: int = 32, seed: int = 0) -> dict:
+    """A committed policy folder (export/ with its chain, the evaluate stage's metrics.json) judged as a chain:
+    `rest_to_rest`, `standing` and `chain_success` added to each range of metrics.json, metrics_dr.json written
+    (the same as the evaluate stage does for a policy it trains). Returns the nominal chain evaluation."""
+    import json
+
+    from pipeline.common.atomic import write_text_atomic
+    from pipeline.evaluation.run import chain_document
+
+    folder = Path(folder)
+    meta = json.loads((folder / "export" / "policy.json").read_text())
+    doc = json.loads((folder / "metrics.json").read_text())
+    psi_ranges = {name: meta["psi_ranges"][name] for name in ("easy", "hard") if name in meta["psi_ranges"]}
+    nominal = evaluate_chain(folder / "export", psi_ranges, episodes_per_range, seed=seed)
+    randomised = evaluate_chain(folder / "export", psi_ranges, episodes_per_range, randomization=RandomizationConfig(),
+                                seed=seed)
+    for name, rates in nominal["ranges"].items():
+        doc["ranges"].setdefault(name, {}).update(rest_to_rest=rates["rest_to_rest"], standing=rates["standing"],
+                                                  chain_success=rates["success"])
+    doc["chain"] = {k: nominal[k] for k in ("chain", "endings")}
+    write_text_atomic(folder / "metrics.json", json.dumps(doc, indent=2, allow_nan=True))
+    write_text_atomic(folder / "metrics_dr.json", json.dumps(chain_document(meta["task"], meta.get("variant", "adamimic"),
+                                                                          randomised), indent=2, allow_nan=True))
+    return nominal
+
+
+if __name__ == "__main__":
+    import sys
+
+    for path in sys.argv[1:]:
+        result = add_chain_metrics(path)
+        print(path, {name: r["rest_to_rest"]["mean"] for name, r in result["ranges"].items()}, result["endings"])
