@@ -42,6 +42,17 @@ def export(tmp_path_factory):
     return chained_export(standin_task_export(root / "task"), root / "export")
 
 
+@pytest.fixture(scope="module")
+def standing_export(tmp_path_factory):
+    """The stand-in task with the committed balance policy (models/pretrained/balance): a chain that stands
+    before the go and after the task, for the runs on the bridge."""
+    from test_chain import chained_export, standin_task_export
+
+    root = tmp_path_factory.mktemp("standing")
+    return chained_export(standin_task_export(root / "task"), root / "export",
+                          balance=REPO / "models" / "pretrained" / "balance" / "export")
+
+
 def _stance29(export, motors):
     """The balance policy's joint targets at a zero action (the stand-in's), on the 29 motors."""
     stance = json.loads((export / "balance" / "policy.json").read_text())["stance"]["joint_target"]
@@ -329,16 +340,16 @@ def _bridge(export, domain, *extra):
                             stderr=subprocess.PIPE, text=True)
 
 
-def test_on_the_bridge_the_robot_is_lowered_from_its_gantry_and_runs_the_chain(export, tmp_path):
+def test_on_the_bridge_the_robot_is_lowered_from_its_gantry_and_runs_the_chain(standing_export, tmp_path):
     """Lockstep bridge at 500 Hz physics and motor law: the G1 hangs in the default pose at the task's
     start, is lowered onto its feet, and deploy runs damping, ramp, the balance policy, the task to its
     handoff and the balance policy again, never from the policy's trained state."""
     from pipeline.deploy.controller import run_deploy
 
     domain, trace = _domain(), tmp_path / "trace.npz"
-    bridge = _bridge(export, domain, "--lockstep", "--trace", str(trace), "--gantry-s", "0.6")
+    bridge = _bridge(standing_export, domain, "--lockstep", "--trace", str(trace), "--gantry-s", "0.6")
     try:
-        report = run_deploy(export, 1.4, interface="lo", domain_id=domain, go_flag=True, lockstep=True,
+        report = run_deploy(standing_export, 1.4, interface="lo", domain_id=domain, go_flag=True, lockstep=True,
                             odometry_topic="rt/adamimic/odometry",
                             safety=SafetyConfig(damping_s=0.2, ramp_s=0.4, stand_s=0.4, hold_after_s=0.2))
     finally:
@@ -348,20 +359,20 @@ def test_on_the_bridge_the_robot_is_lowered_from_its_gantry_and_runs_the_chain(e
     assert [m for _, m in report.modes] == ["damping", "ramp", "stand", "policy", "stand", "damping"]
     assert report.phases[-1] >= 1.0 - 1e-6
     run = np.load(trace)
-    meta = json.loads((export / "policy.json").read_text())
+    meta = json.loads((standing_export / "policy.json").read_text())
     first = run["qpos"][0]
     assert np.allclose(first[:2], meta["initial_state"]["qpos"][:2], atol=0.02)  # at the task's start ...
     assert first[2] > 0.76 + 0.03  # ... hanging above the stance
     assert not np.allclose(first, meta["initial_state"]["qpos"][:7], atol=0.02)  # not the trained state
 
 
-def test_rehearse_runs_deploy_against_the_bridge_with_the_real_timings(export):
+def test_rehearse_runs_deploy_against_the_bridge_with_the_real_timings(standing_export):
     """`adamimic rehearse`: real time, deploy's default damping (1 s), ramp (3 s), 2 s of standing, the
     go, the task, then the balance policy; one JSON line per ψ with the chain's verdicts."""
     from pipeline.deploy.rehearse import rehearse
 
     start = time.monotonic()
-    (line,) = rehearse(export, [1.4], keep_s=3.5, log=lambda _: None)
+    (line,) = rehearse(standing_export, [1.4], keep_s=3.5, log=lambda _: None)
     defaults = SafetyConfig()
     assert time.monotonic() - start >= defaults.damping_s + defaults.ramp_s + defaults.stand_s
     assert line["modes"][:4] == ["damping", "ramp", "stand", "policy"] and line["modes"][-1] == "damping"
@@ -425,7 +436,7 @@ def test_dry_run_publishes_nothing(export):
     thread.start()
     try:
         report = run_deploy(export, 1.4, interface="lo", domain_id=domain, dry_run=True, go_flag=True,
-                            pose=lambda: (np.zeros(3), 0.0), on_tick=_stop_after(10),
+                            pose=lambda: (np.zeros(3), 0.0), on_tick=_stop_after(14),
                             safety=SafetyConfig(damping_s=0.04, ramp_s=0.1, stand_s=0.04, state_timeout_s=0.5))
     finally:
         stop.set()

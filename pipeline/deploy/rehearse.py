@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.deploy.safety import SafetyConfig
+from pipeline.deploy.transport import ODOMETRY_TOPIC
 from pipeline.envs.falls import STANDING
 
 
@@ -102,7 +103,7 @@ def rehearse(export_dir: str | Path, psi_values, *, safety: SafetyConfig | None 
             bridge = _bridge(export_dir, float(psi), domain, trace_path, safety.damping_s + safety.ramp_s)
             try:
                 report = run_deploy(export_dir, float(psi), interface="lo", domain_id=domain, go_flag=True,
-                                    safety=safety)
+                                    safety=safety, odometry_topic=ODOMETRY_TOPIC)
             finally:
                 bridge.terminate()
                 _, err = bridge.communicate(timeout=30)
