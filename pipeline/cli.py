@@ -48,7 +48,7 @@ def stage_main(run: Callable, description: str = "", argv: list[str] | None = No
 
 
 def main(argv: list[str] | None = None) -> None:
-    """`adamimic <command>`: user-facing tools beside `dvc repro` (play, share, sim2sim, deploy, rehearse, sim-bridge)."""
+    """`adamimic <command>`: user-facing tools beside `dvc repro` (play, view, share, sim2sim, deploy, rehearse, sim-bridge)."""
     import math
 
     from pipeline.deploy.safety import SafetyConfig
@@ -96,6 +96,12 @@ def main(argv: list[str] | None = None) -> None:
                                ("joint-margin-rad", defaults.joint_margin_rad,
                                 "joint beyond its limit by this before damping")):
         deploy.add_argument(f"--{key}", type=float, default=default, help=f"{text} (default {default})")
+
+    view = sub.add_parser("view", help="serve an export (its chain, live), a retargeted task or a keyframes dataset "
+                                       "in the browser (mjviser), on localhost")
+    view.add_argument("path", type=Path, help="export folder, data/retargeted/<task> or data/keyframes/<task>/d_edit")
+    view.add_argument("--port", type=int, default=8080)
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on (default: this machine only)")
 
     rehearse = sub.add_parser("rehearse", help="deploy against sim-bridge over loopback with the real timings; "
                                                "one JSON line per psi (success, standing, rest_to_rest)")
@@ -148,6 +154,10 @@ def main(argv: list[str] | None = None) -> None:
                                 odometry_topic=args.odometry_topic, lockstep=args.lockstep, safety=safety)
             print(f"{report.end}: {report.message}")
             sys.exit(report.exit_code)
+        elif args.command == "view":
+            from pipeline.export.view import serve
+
+            serve(args.path, host=args.host, port=args.port)
         elif args.command == "rehearse":
             from pipeline.deploy.rehearse import rehearse
 

@@ -260,3 +260,73 @@ def run_chain(export_dir: str | Path, psi_values, **chain_overrides) -> dict:
     return {"task": runner.task.meta["task"], "chain": runner.chain, "success": rate("success"),
             "standing": rate("standing"), "rest_to_rest": rate("rest_to_rest"),
             "episodes": [r.to_json() for r in results]}
+
+
+class LiveChain:
+    """The chain one control step at a time, for a viewer: the balance policy holds the robot until `go()`
+    (counted after `stand_s`), the task runs to its handoff (or a fall), then the balance policy again.
+    `restart(psi)` puts the robot back at the stance and moves the terrain to ψ, in the same model."""
+
+    def __init__(self, runner: ChainRunner, psi: float):
+        from pipeline.export.sim2sim import RobotState, build_scene
+
+        m = runner.task.meta
+        self.runner, self.meta = runner, m
+        self.model = build_scene(m, psi, visual=True)
+        self.data = mujoco.MjData(self.model)
+        joints = [self.model.joint(n).id for n in m["joint_names"]]
+        self.state = RobotState(self.model, self.data, self.model.jnt_qposadr[joints], self.model.jnt_dofadr[joints])
+        self.actuators = np.array([self.model.actuator(n).id for n in m["joint_names"]])
+        self.sites = np.array([self.model.site(n).id for n in m["tracked_site_names"]])
+        self.restart(psi)
+
+    def restart(self, psi: float) -> None:
+        from pipeline.export.sim2sim import EpisodeJudge, terrain_layout_at
+
+        self.psi = float(psi)
+        for name, (pos, size) in terrain_layout_at(self.meta, self.psi).items():
+            self.model.geom_pos[self.model.geom(name).id], self.model.geom_size[self.model.geom(name).id] = pos, size
+        self.data.qpos[:], self.data.qvel[:] = stance_state(self.meta, self.model,
+                                                            float(self.runner.balance_meta["stance"]["root_height"]))
+        mujoco.mj_forward(self.model, self.data)
+        self.judge = EpisodeJudge(self.meta, self.psi, self.runner.task.keyframe_targets(self.psi))
+        self.stretch, self.substep, self.control_steps, self.go_asked, self.end = "stand", 0, 0, False, None
+        self.runner.balance.reset()
+
+    def go(self) -> None:
+        self.go_asked = True
+
+    def status(self) -> str:
+        text = {"stand": "standing on the balance policy" + (" (go pressed)" if self.go_asked else ": press go"),
+                "task": f"the task, phase {self.runner.task.stepper.phase:.2f}",
+                "balance": "the balance policy took over"}[self.stretch]
+        return f"ψ {self.psi:.2f} m: {text}" + (f"; {self.end}" if self.end else "")
+
+    def _control(self) -> None:
+        s, chain, task = self.state, self.runner.chain, self.runner.task.stepper
+        measured = dict(base_ang_vel=s.base_ang_vel(), projected_gravity=s.projected_gravity(),
+                        joint_pos=s.joint_pos(), joint_vel=s.joint_vel())
+        if self.stretch == "stand" and self.go_asked and self.control_steps * self.runner.control_dt >= chain["stand_s"]:
+            self.stretch, self.origin = "task", (self.data.qpos[0:3].copy(), yaw_of(self.data.qpos[3:7]))
+            task.reset()
+        if self.stretch == "task":
+            odometry = rotate_z(self.data.qpos[0:3] - self.origin[0], -self.origin[1]) if task.odometry_due() else None
+            out = task.step(psi=self.psi, odometry=odometry, **measured)
+            verdict = self.judge.update(out.phase, self.data.site_xpos[self.sites], s.projected_gravity(),
+                                        float(self.data.qpos[2]))
+            if verdict not in (None, "done") or out.phase >= float(chain["handoff_phase"]) - 1e-9:
+                self.end = f"the task ended: {verdict or 'handed over'}"
+                self.stretch = "balance"
+                self.runner.balance.reset()
+        else:
+            out = self.runner.balance.step(psi=0.0, **measured)
+        self.data.ctrl[self.actuators] = out.joint_targets
+        self.control_steps += 1
+
+    def step(self) -> None:
+        """One physics substep; a control step every `decimation` of them."""
+        if self.substep % self.runner.task.decimation == 0:
+            self._control()
+        mujoco.mj_step(self.model, self.data)
+        self.substep += 1
+

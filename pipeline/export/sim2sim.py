@@ -91,20 +91,21 @@ def _interp_grid(grid: list[float], values: np.ndarray, psi: float) -> np.ndarra
 
 
 # ------------------------------------------------------------------------------ the scene
-def _terrain_adder(meta: dict, psi: float) -> Callable[[mujoco.MjSpec], None]:
+def terrain_layout_at(meta: dict, psi: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{geom name: (pos, size)} of the terrain at ψ: linear between the two nearest grid layouts."""
     terrain = meta.get("terrain") or {}
-    geoms = terrain.get("geoms") or []
     layouts = terrain.get("layouts") or []
-    layout = {}
-    if layouts:
-        grid = np.asarray(terrain["psi_grid"])
-        i = int(np.argmin(np.abs(grid - psi)))
-        # pos/size interpolate linearly between the two nearest grid layouts
-        names = layouts[i].keys()
-        for name in names:
-            pos = _interp_grid(grid, np.array([l[name]["pos"] for l in layouts]), psi)
-            size = _interp_grid(grid, np.array([l[name]["size"] for l in layouts]), psi)
-            layout[name] = (pos, size)
+    if not layouts:
+        return {}
+    grid = np.asarray(terrain["psi_grid"])
+    i = int(np.argmin(np.abs(grid - psi)))
+    return {name: (_interp_grid(grid, np.array([l[name]["pos"] for l in layouts]), psi),
+                   _interp_grid(grid, np.array([l[name]["size"] for l in layouts]), psi)) for name in layouts[i]}
+
+
+def _terrain_adder(meta: dict, psi: float) -> Callable[[mujoco.MjSpec], None]:
+    geoms = (meta.get("terrain") or {}).get("geoms") or []
+    layout = terrain_layout_at(meta, psi)
 
     def add(spec: mujoco.MjSpec) -> None:
         if not geoms:
