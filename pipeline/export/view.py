@@ -24,6 +24,7 @@ from pipeline.common.errors import PipelineInputError
 
 KEYFRAME_RGB = (255, 140, 0)
 PERSON_RGB = (60, 120, 220)
+ROBOT_EXTENT_M = 1.2  # the scene's size mjviser frames the camera on: the G1, not the terrain
 
 
 def _server(host: str, port: int):
@@ -33,8 +34,11 @@ def _server(host: str, port: int):
 
 
 def viewer_for(model: mujoco.MjModel, step, server, data: mujoco.MjData | None = None):
-    """mjviser's viewer on `server`, stepping with `step(model, data)` in real time."""
+    """mjviser's viewer on `server`, stepping with `step(model, data)` in real time. The camera starts about
+    3 m from the robot (mjviser places it by the model's extent, which a task's 20 m terrain boxes inflate)."""
     from mjviser import Viewer
+
+    model.stat.extent = ROBOT_EXTENT_M
 
     return Viewer(model, data if data is not None else mujoco.MjData(model), step_fn=step, server=server)
 
