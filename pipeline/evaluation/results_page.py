@@ -316,9 +316,10 @@ def task_section(root: Path, page: Path, img_dir: Path, task: str, entries: list
                         f"({_link(root, e.folder / 'metrics.json', page.parent)})" for e in entries)
     out += [f"{origin}. " + "; ".join(facts) + f". From {sources}.", ""]
     out += _table(entries)
-    out += ["", "Succ. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s², mean ± std over runs. The paper's "
-            f"own AdaMimic row is not reproduced in this repository: compare with *{PAPER_TITLE}*, whose table "
-            "this layout follows.", ""]
+    out += ["", "Succ. in %, E_l-bpe and E_g-bpe in mm, E_smth in rad/s², mean ± std over runs, in the layout of "
+            f"*{PAPER_TITLE}*'s table; the report stage prints the paper's own rows beside ours, with its claims "
+            "checked, in `reports/<task>/table.md` (from `../shared/paper/figures.yaml` where it is beside the "
+            "repository).", ""]
     if seeds is not None:  # the report stage's spread over training seeds (extra_seeds)
         source = root / "reports" / task / "seeds.json"
         out += [seeds_table(seeds, heading="###").strip(), "",
