@@ -68,6 +68,15 @@ def evaluate_chain(export_dir: str | Path, psi_ranges: dict, episodes_per_range:
             "ranges": ranges, "endings": dict(sorted(endings.items())), "episodes": episodes}
 
 
+def merge_chain(doc: dict, nominal: dict) -> None:
+    """Adds a nominal chain evaluation to a metrics.json document: `rest_to_rest`, `standing` and the chain's own
+    task-stretch `chain_success` beside the paper's success in each range, and where the chains ended."""
+    for name, rates in nominal["ranges"].items():
+        doc["ranges"].setdefault(name, {}).update(rest_to_rest=rates["rest_to_rest"], standing=rates["standing"],
+                                                  chain_success=rates["success"])
+    doc["chain"] = {k: nominal[k] for k in ("chain", "endings")}
+
+
 def add_chain_metrics(folder: str | Path, episodes_per_range: int = 32, seed: int = 0) -> dict:
     """A committed policy folder (export/ with its chain, the evaluate stage's metrics.json) judged as a chain:
     `rest_to_rest`, `standing` and `chain_success` added to each range of metrics.json, metrics_dr.json written
@@ -84,10 +93,7 @@ def add_chain_metrics(folder: str | Path, episodes_per_range: int = 32, seed: in
     nominal = evaluate_chain(folder / "export", psi_ranges, episodes_per_range, seed=seed)
     randomised = evaluate_chain(folder / "export", psi_ranges, episodes_per_range, randomization=RandomizationConfig(),
                                 seed=seed)
-    for name, rates in nominal["ranges"].items():
-        doc["ranges"].setdefault(name, {}).update(rest_to_rest=rates["rest_to_rest"], standing=rates["standing"],
-                                                  chain_success=rates["success"])
-    doc["chain"] = {k: nominal[k] for k in ("chain", "endings")}
+    merge_chain(doc, nominal)
     write_text_atomic(folder / "metrics.json", json.dumps(doc, indent=2, allow_nan=True))
     write_text_atomic(folder / "metrics_dr.json", json.dumps(chain_document(meta["task"], meta.get("variant", "adamimic"),
                                                                           randomised), indent=2, allow_nan=True))

@@ -73,14 +73,12 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if balance_export is not None:  # the chain from the stance at rest: rest_to_rest, nominal and randomised
+        from pipeline.evaluation.chain_eval import merge_chain
+
         nominal, randomised = evaluate_rest_to_rest(task=task, variant=variant, data=data, env_cfg=env_cfg,
                                                     eval_cfg=eval_cfg, policy_dir=policy_dir,
                                                     balance_export=balance_export, psi_ranges=result.psi_ranges)
-        for name, rates in nominal["ranges"].items():
-            # the chain's own task-stretch success beside the paper's (from the trained start, above)
-            doc["ranges"].setdefault(name, {}).update(rest_to_rest=rates["rest_to_rest"], standing=rates["standing"],
-                                                      chain_success=rates["success"])
-        doc["chain"] = {k: nominal[k] for k in ("chain", "endings")}
+        merge_chain(doc, nominal)
         write_metrics(out_dir / "metrics_dr.json", chain_document(task, variant, randomised))
     write_metrics(out_dir / "metrics.json", doc)
     write_per_psi(out_dir / "per_psi.csv", rows, out_dir / "per_psi.json")
