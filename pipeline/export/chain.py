@@ -221,12 +221,19 @@ class ChainRunner:
             return ChainResult(float(psi), bool(success), bool(standing), bool(success and standing), end, ended_in,
                                list(judge.errors), dict(steps), data.qpos[0:3].tolist())
 
-        self.balance.reset()
-        for _ in range(stand_steps):
-            advance(self.balance, "stand", psi=0.0)
-            fallen = balance_fallen(model, data.qpos, self.balance_meta["terminations"])
-            if fallen is not None:
-                return finish(fallen, "stand")
+        def hold(count: int, stretch: str) -> str | None:
+            """`count` control steps of the balance policy from a fresh history: the fall that ended them, or None."""
+            self.balance.reset()
+            for _ in range(count):
+                advance(self.balance, stretch, psi=0.0)
+                fallen = balance_fallen(model, data.qpos, self.balance_meta["terminations"])
+                if fallen is not None:
+                    return fallen
+            return None
+
+        fallen = hold(stand_steps, "stand")
+        if fallen is not None:
+            return finish(fallen, "stand")
 
         task = self.task.stepper
         task.reset()
@@ -242,12 +249,9 @@ class ChainRunner:
             if steps["task"] >= task.max_steps:
                 return finish("max_steps", "task")
 
-        self.balance.reset()
-        for _ in range(after_steps):
-            advance(self.balance, "balance", psi=0.0)
-            fallen = balance_fallen(model, data.qpos, self.balance_meta["terminations"])
-            if fallen is not None:
-                return finish(fallen, "balance")
+        fallen = hold(after_steps, "balance")
+        if fallen is not None:
+            return finish(fallen, "balance")
         standing = judge_standing(model, data.qpos, data.qvel)
         return finish("standing" if standing else "not_standing", "balance", standing)
 
