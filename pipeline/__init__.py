@@ -9,7 +9,7 @@ def _headless_gl() -> str:
     """MuJoCo's offscreen GL: EGL where libEGL is installed, else OSMesa, else "disable", which keeps
     `import mujoco` working on a server without either (MUJOCO_GL=egl there makes PyOpenGL raise an
     AttributeError that MuJoCo does not catch, which would stop even the stages that never render);
-    the stages that do render then stop with their own message (pipeline/evaluation/video.py)."""
+    the stages that do render then stop with their own message (pipeline/render/renderer.py)."""
     for library, backend in (("EGL", "egl"), ("OSMesa", "osmesa")):
         if ctypes.util.find_library(library):
             return backend

@@ -41,7 +41,7 @@ def run_retarget(params: PipelineConfig, args) -> None:
     out = paths.retarget_dir(args.task)
     write_motions(out / "motion", [motion])
     write_text_atomic(out / "quality.json", json.dumps(report, indent=1, default=float))
-    write_preview(human, motion, out / "preview.mp4", duration_scale=report["duration_scale"])
+    write_preview(human, motion, out / "preview.mp4", duration_scale=report["duration_scale"], title=args.task)
     print(json.dumps(report, indent=1, default=float))
 
 

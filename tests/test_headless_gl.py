@@ -22,10 +22,10 @@ def test_the_first_installed_gl_library_is_chosen(monkeypatch, installed, expect
 def test_without_gl_mujoco_imports_and_rendering_fails_clearly():
     script = (
         "from pipeline.robot.g1 import build_model\n"
-        "from pipeline.evaluation.video import SceneRenderer\n"
+        "from pipeline.render.renderer import Renderer\n"
         "model = build_model(visual=True)\n"
         "print('imported')\n"
-        "SceneRenderer(model, 64, 48)\n"
+        "Renderer(model, 64, 48)\n"
     )
     env = dict(os.environ, MUJOCO_GL="disable")
     result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)

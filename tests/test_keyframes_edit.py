@@ -154,7 +154,8 @@ def test_datasets_round_trip(far, tmp_path):
 def test_figure_and_video_written(far, tmp_path):
     import cv2
 
-    from pipeline.keyframes.figure import keyframe_figure, rule_video
+    from pipeline.keyframes.figure import keyframe_figure
+    from pipeline.keyframes.rule_video import rule_video
 
     motion, task, table, edit, _ = far
     keyframe_figure(edit, tmp_path / "kf.png")

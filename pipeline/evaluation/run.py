@@ -7,13 +7,14 @@ evaluate_variant writes into `out_dir` (results/<task>/<variant>/):
   per_psi.csv, per_psi.json   DVC plots: metrics in ψ bins
   media/per_psi.png       success and errors vs ψ
   media/adapters.png      phase interval and adapter action magnitude over the episode, several ψ
-  media/<range>_psi<ψ>.mp4    rollouts with the keyframe targets as markers
+  media/<range>_psi<ψ>.mp4    rollouts of the exported chain (stand, go, task, stand), the reference as a ghost
 """
 
 from __future__ import annotations
 
 import json
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -72,46 +73,57 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
     rows = per_psi_rows(result.runs, result.psi_ranges, eval_cfg.psi_grid_points)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if balance_export is not None:  # the chain from the stance at rest: rest_to_rest, nominal and randomised
-        from pipeline.evaluation.chain_eval import merge_chain
+    with scratch_export(task=task, variant=variant, data=data, env_cfg=env_cfg, policy_dir=policy_dir,
+                        balance_export=balance_export, needed=videos or balance_export is not None) as export:
+        if balance_export is not None:  # the chain from the stance at rest: rest_to_rest, nominal and randomised
+            from pipeline.evaluation.chain_eval import merge_chain
 
-        nominal, randomised = evaluate_rest_to_rest(task=task, variant=variant, data=data, env_cfg=env_cfg,
-                                                    eval_cfg=eval_cfg, policy_dir=policy_dir,
-                                                    balance_export=balance_export, psi_ranges=result.psi_ranges)
-        merge_chain(doc, nominal)
-        write_metrics(out_dir / "metrics_dr.json", chain_document(task, variant, randomised))
-    write_metrics(out_dir / "metrics.json", doc)
-    write_per_psi(out_dir / "per_psi.csv", rows, out_dir / "per_psi.json")
-    with atomic_dir(out_dir / "media") as media:
-        plot_per_psi({variant: rows}, result.psi_ranges, media / "per_psi.png")
-        adapter_psi = [p for _, p in spread_in_ranges(result.psi_ranges, list(result.psi_ranges),
-                                                      max(1, eval_cfg.adapter_psi_points // len(result.psi_ranges)))]
-        traces = [trace_episode(policy, data, psi, make_env) for psi in adapter_psi]
-        phase_rate = env_cfg_phase_rate(data)
-        plot_adapters(traces, phase_rate, media / "adapters.png")
-        if videos:
-            for name, psi in _video_psi(eval_cfg, result.psi_ranges):
-                render_rollout_video(policy, data, psi, make_env, media / f"{name}_psi{psi:.2f}.mp4", eval_cfg)
+            nominal, randomised = evaluate_rest_to_rest(export, eval_cfg, result.psi_ranges)
+            merge_chain(doc, nominal)
+            write_metrics(out_dir / "metrics_dr.json", chain_document(task, variant, randomised))
+        write_metrics(out_dir / "metrics.json", doc)
+        write_per_psi(out_dir / "per_psi.csv", rows, out_dir / "per_psi.json")
+        with atomic_dir(out_dir / "media") as media:
+            plot_per_psi({variant: rows}, result.psi_ranges, media / "per_psi.png")
+            adapter_psi = [p for _, p in spread_in_ranges(result.psi_ranges, list(result.psi_ranges),
+                                                          max(1, eval_cfg.adapter_psi_points // len(result.psi_ranges)))]
+            traces = [trace_episode(policy, data, psi, make_env) for psi in adapter_psi]
+            phase_rate = env_cfg_phase_rate(data)
+            plot_adapters(traces, phase_rate, media / "adapters.png")
+            if videos:
+                for name, psi in _video_psi(eval_cfg, result.psi_ranges):
+                    render_rollout_video(export, psi, media / f"{name}_psi{psi:.2f}.mp4", eval_cfg)
     return doc
 
 
-def evaluate_rest_to_rest(*, task, variant, data, env_cfg, eval_cfg: EvalConfig, policy_dir, balance_export,
-                          psi_ranges) -> tuple[dict, dict]:
-    """The chain's evaluation (evaluation/chain_eval.py) of the policy exported with the balance policy into a
-    scratch folder: (nominal, under the paper's domain randomisation)."""
+@contextmanager
+def scratch_export(*, task, variant, data, env_cfg, policy_dir, balance_export, needed: bool = True):
+    """The policy exported (with its chain when a balance policy is given) into a temporary folder: what the
+    chain evaluation and the videos run, the deployment loop a robot runs. None when not `needed`."""
     import tempfile
 
-    from pipeline.envs.config import RandomizationConfig
-    from pipeline.evaluation.chain_eval import evaluate_chain
+    if not needed:
+        yield None
+        return
+
     from pipeline.export.onnx_export import export_variant
 
-    with tempfile.TemporaryDirectory(prefix="adamimic-chain-") as scratch:
+    with tempfile.TemporaryDirectory(prefix="adamimic-eval-") as scratch:
         export = Path(scratch) / "export"
         export_variant(task=task, variant=variant, data=data, policy_dir=policy_dir, out_dir=export, env_cfg=env_cfg,
                        balance_export=balance_export)
-        per_range = eval_cfg.chain_episodes_per_range
-        nominal = evaluate_chain(export, psi_ranges, per_range, seed=eval_cfg.seed)
-        randomised = evaluate_chain(export, psi_ranges, per_range, randomization=RandomizationConfig(), seed=eval_cfg.seed)
+        yield export
+
+
+def evaluate_rest_to_rest(export: Path, eval_cfg: EvalConfig, psi_ranges: dict) -> tuple[dict, dict]:
+    """The chain's evaluation (evaluation/chain_eval.py) of an export with its balance policy: (nominal, under
+    the paper's domain randomisation)."""
+    from pipeline.envs.config import RandomizationConfig
+    from pipeline.evaluation.chain_eval import evaluate_chain
+
+    per_range = eval_cfg.chain_episodes_per_range
+    nominal = evaluate_chain(export, psi_ranges, per_range, seed=eval_cfg.seed)
+    randomised = evaluate_chain(export, psi_ranges, per_range, randomization=RandomizationConfig(), seed=eval_cfg.seed)
     return nominal, randomised
 
 
@@ -150,47 +162,13 @@ def _video_psi(eval_cfg: EvalConfig, psi_ranges: dict) -> list[tuple[str, float]
     return spread_in_ranges(psi_ranges, list(psi_ranges), eval_cfg.video.per_range)
 
 
-def render_rollout_video(policy: PolicyRunner, data, psi: float, make_env, path: Path, eval_cfg: EvalConfig) -> Path:
-    """One episode at ψ rendered from the env's world 0 onto the visual G1 with the task terrain."""
-    import mujoco
+def render_rollout_video(export: Path, psi: float, path: Path, eval_cfg: EvalConfig) -> Path:
+    """One rollout at ψ as a robot runs it, through `adamimic play`'s renderer: with a chain, standing on the
+    balance policy, the go, the task and the stand after it; else the task from its trained start."""
+    from pipeline.export.play import play_to_mp4
 
-    from pipeline.evaluation.video import MARKER_RGBA_PENDING, MARKER_RGBA_REACHED, Mp4Writer, SceneRenderer
-    from pipeline.keyframes.terrain import apply_layout, terrain_builder, terrain_layout
-    from pipeline.robot.g1 import build_model
-
-    kinds = data.terrain.get("kind", "flat") if data.terrain else "flat"
-    model = build_model(terrain=None if kinds == "flat" else terrain_builder(data.terrain), visual=True)
-    if kinds != "flat":
-        apply_layout(model, terrain_layout(data.terrain, psi))
-    vis = mujoco.MjData(model)
-    sample = int(np.argmin(np.abs(data.psi - psi)))
-    frames = np.asarray(data.keyframe_frames)
-    targets = data.motion.body_pos[frames] + data.keyframe_offsets[sample][:, None, :]  # (K, B, 3)
-    kf_phase = frames / (data.motion.num_frames - 1)
     cfg = eval_cfg.video
-    every = max(1, int(round(50 / cfg.fps)))
-    renderer = SceneRenderer(model, cfg.width, cfg.height)
-    writer = Mp4Writer(path, cfg.fps, cfg.width, cfg.height)
-    state = {"step": 0}
-
-    def on_frame(env, info):
-        state["step"] += 1
-        if state["step"] % every or state["step"] * 0.02 > cfg.max_seconds:
-            return
-        vis.qpos[:] = env.backend.qpos[0].detach().cpu().numpy().astype(np.float64)
-        mujoco.mj_kinematics(model, vis)
-        reached = kf_phase <= float(info["phase"][0]) + 1e-6
-        colors = np.where(reached[:, None], MARKER_RGBA_REACHED, MARKER_RGBA_PENDING)
-        colors = np.broadcast_to(colors[:, None], targets.shape[:2] + (4,))
-        writer.add(renderer.render(vis, targets.reshape(-1, 3), colors.reshape(-1, 4), 0.03))
-
-    try:
-        trace_episode(policy, data, psi, make_env, frame_callback=on_frame)
-    finally:
-        renderer.close()
-    if writer.count == 0:
-        raise RuntimeError(f"no frame rendered for ψ={psi}")
-    return writer.close()
+    return play_to_mp4(export, psi, path, seconds=cfg.max_seconds, width=cfg.width, height=cfg.height, fps=cfg.fps)
 
 
 def load_metrics(path: str | Path) -> dict:

@@ -106,6 +106,10 @@ def reference_metadata(data: TrackingData, grid: np.ndarray) -> dict:
         "projected_gravity_xy": projected_gravity_xy(motion.root_quat).tolist(),  # (T, 2)
         "psi_grid": grid.tolist(),
         "root_height_offset": samples_on_grid(data.psi, z_offsets, grid).tolist(),  # (G, T) m
+        # the unedited reference pose per frame, for drawing it beside the robot (render/reference.py)
+        "root_pos": motion.root_pos.tolist(),  # (T, 3) m
+        "root_quat": motion.root_quat.tolist(),  # (T, 4) wxyz
+        "joint_pos": motion.joint_pos.tolist(),  # (T, J) in joint_names' order
     }
 
 
@@ -180,7 +184,6 @@ def build_metadata(*, task: str, variant: str, robot: RobotConfig, data: Trackin
                          " + action_scale * action")
         # (T, J), for reading; the graph holds it
         reference["joint_target"] = zero_action_targets(motion, action_offset, robot).tolist()
-        reference["joint_pos"] = motion.joint_pos.tolist()
         prior = getattr(data, "push_prior", None)
         if prior is not None:  # priors/push_prior.py; the graph holds it too
             joint_targets = joint_targets.replace(" + action_scale", " + interp(psi, reference.push_prior.psi_anchors, "

@@ -10,7 +10,7 @@ _EXPORTS = {
     "build_tracking_data": "edit", "sample_psi": "edit", "apply_offsets": "edit",
     "write_tracking_dataset": "datasets", "load_tracking_data": "datasets",
     "terrain_builder": "terrain", "terrain_layout": "terrain", "apply_layout": "terrain",
-    "keyframe_figure": "figure", "rule_video": "figure", "build_task_outputs": "outputs",
+    "keyframe_figure": "figure", "rule_video": "rule_video", "build_task_outputs": "outputs",
     "TrackingData": "tracking_data",
 }
 

@@ -1,6 +1,7 @@
 """The "keyframing and editing" picture: the original keyframes' skeletons in grey and the moved ones
 coloured by ψ (blues: easy, reds: hard), in a side view (along the travel vs height) and a top view,
-each flight's path drawn over the root's and numbered with its take-off and landing times; plus an mp4 of D_rule motions for a few ψ (matplotlib drawing, OpenCV mp4v writer)."""
+each flight's path drawn over the root's and numbered with its take-off and landing times. The D_rule
+video: keyframes/rule_video.py."""
 
 from __future__ import annotations
 
@@ -123,51 +124,3 @@ def keyframe_figure(data: TrackingData, path: str | Path, title: str | None = No
     with atomic_file(path, "wb") as handle:
         fig.savefig(handle, format="png", dpi=110)
     plt.close(fig)
-
-
-def rule_video(data: TrackingData, path: str | Path, num_motions: int = 5, fps_out: float = 25.0,
-               size: tuple[int, int] = (640, 360)) -> None:
-    """An mp4 of D_rule motions (dense offsets) for a few ψ, side view, written atomically."""
-    import cv2
-
-    if data.dense_offsets is None:
-        raise ValueError("rule_video needs D_rule (TrackingData with dense_offsets)")
-    motion = data.motion
-    index = {n: i for i, n in enumerate(motion.body_names)}
-    travel = _view_axes(data)
-    side = lambda p: (p[:2] @ travel, p[2])  # noqa: E731
-    order = np.argsort(data.psi)
-    chosen = order[np.unique(np.linspace(0, len(order) - 1, min(num_motions, len(order))).round().astype(int))]
-    colors = plt.get_cmap("viridis")(np.linspace(0.1, 0.9, len(chosen)))
-    all_pos = motion.body_pos[None] + data.dense_offsets[chosen][:, :, None, :]
-    along = all_pos[..., :2] @ travel
-    xlim = (along.min() - 0.3, along.max() + 0.3)
-    ylim = (min(0.0, all_pos[..., 2].min()) - 0.1, all_pos[..., 2].max() + 0.2)
-    step = max(1, int(round(motion.fps / fps_out)))
-    dpi = 80
-    fig, ax = plt.subplots(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi)
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), motion.fps / step, size)
-    try:
-        for t in range(0, motion.num_frames, step):
-            ax.clear()
-            ax.set_xlim(*xlim)
-            ax.set_ylim(*ylim)
-            ax.set_aspect("equal")
-            ax.axhline(0.0, color="0.7", lw=0.8)
-            for c, n in zip(colors, chosen):
-                _draw_skeleton(ax, all_pos[list(chosen).index(n), t], index, side, c, lw=1.5)
-            ax.set_title(f"{data.task} D_rule  t={t / motion.fps:.2f}s  ψ=" +
-                         ", ".join(f"{data.psi[n]:.2f}" for n in chosen), fontsize=8)
-            fig.canvas.draw()
-            rgba = np.asarray(fig.canvas.buffer_rgba())
-            frame = cv2.cvtColor(rgba[..., :3].copy(), cv2.COLOR_RGB2BGR)
-            if frame.shape[1] != size[0] or frame.shape[0] != size[1]:
-                frame = cv2.resize(frame, size)
-            writer.write(frame)
-    finally:
-        writer.release()
-        plt.close(fig)
-    tmp.replace(path)

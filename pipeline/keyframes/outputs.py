@@ -12,7 +12,8 @@ from pipeline.common.atomic import write_text_atomic
 from pipeline.keyframes.config import TaskConfig
 from pipeline.keyframes.datasets import write_tracking_dataset
 from pipeline.keyframes.edit import build_tracking_data
-from pipeline.keyframes.figure import keyframe_figure, rule_video
+from pipeline.keyframes.figure import keyframe_figure
+from pipeline.keyframes.rule_video import rule_video
 from pipeline.keyframes.lead_in import with_lead_in
 from pipeline.keyframes.select import select_keyframes
 from pipeline.motion.motion import Motion

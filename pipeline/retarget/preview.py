@@ -1,14 +1,13 @@
-"""Preview video: the human skeleton (scaled to robot size) beside the retargeted G1.
+"""Preview video: the person (SMPL joints scaled to the robot's size) beside the retargeted G1.
 
-MuJoCo offscreen rendering (MUJOCO_GL=egl works on this machine; osmesa does not), the skeleton
-drawn as capsules into the same scene, 1 m to the robot's left. If no GL context can be made the
-frames are drawn with matplotlib (3D sticks) instead. OpenCV writes mp4v; the file appears
-atomically (temporary sibling, renamed into place).
+Drawn through the project's renderer (pipeline/render: the styled scene, a camera following the pair, a
+caption), the person as capsules 1 m to the robot's left, seen from three quarters so neither hides the
+other. If no GL context can be made the frames are drawn with matplotlib (3D sticks) instead. H.264, written
+atomically (pipeline/render/mp4.py).
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ from pipeline.human.motion import SMPL_PARENTS, HumanMotion
 from pipeline.motion.motion import Motion
 
 SIDE_OFFSET = np.array([0.0, 1.0, 0.0])
+PERSON_RGBA = np.array([0.95, 0.6, 0.2, 1.0], dtype=np.float32)
 
 
 def _human_at(human: HumanMotion, motion: Motion, scale: float, duration_scale: float = 1.0) -> np.ndarray:
@@ -31,43 +31,34 @@ def _human_at(human: HumanMotion, motion: Motion, scale: float, duration_scale: 
 
 
 def write_preview(human: HumanMotion, motion: Motion, path: str | Path, scale: float | None = None,
-                  width: int = 640, height: int = 360, progress: bool = True, duration_scale: float = 1.0) -> Path:
-    import cv2
+                  width: int = 960, height: int = 540, progress: bool = True, duration_scale: float = 1.0,
+                  title: str = "") -> Path:
     from tqdm import tqdm
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from pipeline.render.mp4 import Mp4Writer
+
     scale = scale if scale is not None else 1.32 / human.height
     skeleton = _human_at(human, motion, scale, duration_scale)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.mp4")
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), motion.fps, (width, height))
     try:
-        frames = _mujoco_frames(motion, skeleton, width, height)
+        frames = _mujoco_frames(motion, skeleton, width, height, title)
     except Exception:  # noqa: BLE001 - no GL context here: draw with matplotlib instead
         frames = _matplotlib_frames(motion, skeleton, width, height)
-    try:
-        for rgb in tqdm(frames, total=motion.num_frames, desc="preview", disable=not progress, leave=False):
-            writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        writer.release()
-        os.replace(tmp, path)
-    finally:
-        writer.release()
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    writer = Mp4Writer(path, int(round(motion.fps)), width, height)
+    for rgb in tqdm(frames, total=motion.num_frames, desc="preview", disable=not progress, leave=False):
+        writer.add(rgb)
+    return writer.close()
 
 
-def _mujoco_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int):
+def _mujoco_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int, title: str):
     import mujoco
 
+    from pipeline.render.renderer import CameraRig, Renderer
     from pipeline.robot.g1 import build_model, joint_qpos_indices
 
     model = build_model(visual=True)
     data = mujoco.MjData(model)
-    renderer = mujoco.Renderer(model, height, width)  # fails here without a GL context
+    renderer = Renderer(model, width, height, rig=CameraRig(distance=4.2, azimuth=125.0, elevation=-12.0, height=0.7))
     qidx = joint_qpos_indices(model, motion.joint_names)
-    camera = mujoco.MjvCamera()
-    camera.distance, camera.elevation, camera.azimuth = 4.0, -15.0, 180.0 + 20.0
 
     def frames():
         try:
@@ -75,12 +66,10 @@ def _mujoco_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int
                 data.qpos[:3] = motion.root_pos[t]
                 data.qpos[3:7] = motion.root_quat[t]
                 data.qpos[qidx] = motion.joint_pos[t]
-                mujoco.mj_forward(model, data)
-                camera.lookat[:] = motion.root_pos[t] + 0.5 * SIDE_OFFSET
-                camera.lookat[2] = 0.7
-                renderer.update_scene(data, camera)
-                _draw_skeleton(renderer.scene, skeleton[t])
-                yield renderer.render()
+                mujoco.mj_kinematics(model, data)
+                caption = [f"{title}   t {t / motion.fps:4.2f} s".strip(), "G1 (retargeted)  ·  person (scaled)"]
+                yield renderer.frame(data, follow=motion.root_pos[t] + 0.5 * SIDE_OFFSET, caption=caption,
+                                     decorate=lambda scene, t=t: _draw_skeleton(scene, skeleton[t]))
         finally:
             renderer.close()
 
@@ -95,8 +84,8 @@ def _draw_skeleton(scene, joints: np.ndarray) -> None:
             continue
         geom = scene.geoms[scene.ngeom]
         mujoco.mjv_initGeom(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, np.zeros(3), np.zeros(3), np.eye(3).ravel(),
-                            np.array([0.95, 0.6, 0.2, 1.0], dtype=np.float32))
-        mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, 0.02, joints[parent], joints[child])
+                            PERSON_RGBA)
+        mujoco.mjv_connector(geom, mujoco.mjtGeom.mjGEOM_CAPSULE, 0.025, joints[parent], joints[child])
         scene.ngeom += 1
 
 
@@ -124,7 +113,8 @@ def _matplotlib_frames(motion: Motion, skeleton: np.ndarray, width: int, height:
                 ax.set_ylim(c[1] - 0.5, c[1] + 1.5)
                 ax.set_zlim(0, 2)
                 fig.canvas.draw()
-                yield np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy()
+                rgb = np.asarray(fig.canvas.buffer_rgba())[:, :, :3]
+                yield np.ascontiguousarray(rgb[:height, :width])
         finally:
             plt.close(fig)
 

@@ -247,10 +247,9 @@ def add_flat_ground(spec: mujoco.MjSpec) -> None:
 
 
 def _add_rendering_extras(spec: mujoco.MjSpec) -> None:
-    spec.worldbody.add_light(name="sun", pos=[0, 0, 4], dir=[0, 0, -1], castshadow=False)
-    spec.visual.global_.offwidth = 1280
-    spec.visual.global_.offheight = 720
-    spec.visual.quality.shadowsize = 0
+    from pipeline.render.style import style_scene
+
+    style_scene(spec)
 
 
 def build_spec(
