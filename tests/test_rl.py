@@ -40,8 +40,22 @@ class ToyKeyframeEnv:
         self.t = torch.zeros(num_envs, dtype=torch.long)
         self.curriculum_calls = []
 
+    # the trainer's contract (pipeline/envs/spec.py); no state to save: restarted at checkpoint boundaries
+    def spec(self):
+        from pipeline.envs.spec import EnvSpec
+
+        return EnvSpec(num_envs=self.num_envs, action_dim=self.action_dim, actor_obs_dim=self.actor_obs_dim,
+                       critic_obs_dim=self.critic_obs_dim, joint_names=tuple(self.joint_names),
+                       obs_layout=self.obs_layout, phase_rate=self.dphi, resumable=False)
+
     def update_curriculum(self, progress):
         self.curriculum_calls.append(progress)
+
+    def curriculum_stats(self):
+        return {}
+
+    def pinned_observation_stats(self):
+        return []
 
     def _reference(self, t):
         # straight line to the first keyframe, then up to the second

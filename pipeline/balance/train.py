@@ -48,9 +48,9 @@ def train_balance(cfg: BalanceConfig, run_dir: str | Path, *, root: Path = Path(
     _seed(train.seed)
     env = env if env is not None else make_balance_env(cfg, root)
     net = train.network
-    policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
+    policy = Stage1Policy(env.spec().actor_obs_dim, env.spec().action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=False, phase_rate=nominal_phase_rate(env), normalize_obs=train.ppo.normalize_obs)
-    critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, train.ppo.normalize_obs)
+    critic = DoubleCritic(env.spec().critic_obs_dim, net.critic_hidden, net.activation, train.ppo.normalize_obs)
     trainer = Trainer(env, policy, critic, train, run_dir, stage=1, meta=balance_meta(env, cfg), l2c2=False,
                       **trainer_kwargs)
     return trainer.run(cfg.iterations, resume=resume, time_limit_s=cfg.time_limit_s or None, chunk_s=chunk_s)

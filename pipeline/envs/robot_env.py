@@ -5,6 +5,8 @@ proprioceptive observation, the regularising penalties, the fall checks, the pen
 the CPU thread scope and the resume machinery. A task env (`TrackingEnv`, `BalanceEnv`) subclasses
 it and adds its own reference, rewards, observations and resets; neither copies the other.
 
+Trainers read it through `pipeline.envs.spec` (`spec()`, `update_curriculum`, `curriculum_stats`, ...).
+
 A subclass provides:
   `_dense_term_names()`   the dense group's terms in the order its score stacks them;
   `_reset_worlds(ids)`    start new episodes in worlds `ids`;
@@ -26,6 +28,7 @@ from pipeline.envs import rewards as R
 from pipeline.envs.falls import fall_flags
 from pipeline.envs.randomization import DomainRandomizer
 from pipeline.envs.scene import make_physics
+from pipeline.envs.spec import EnvSpec
 from pipeline.robot.g1 import joint_limits, load_robot_config
 
 # The regularisers every task pays in its dense group, in the order `penalty_terms` returns them.
@@ -136,6 +139,33 @@ class RobotEnv:
         finally:
             if previous != wanted:
                 torch.set_num_threads(previous)
+
+    # ------------------------------------------------------------------ the trainer's contract (envs/spec.py)
+    def spec(self) -> EnvSpec:
+        return EnvSpec(num_envs=self.num_envs, action_dim=self.action_dim, actor_obs_dim=self.actor_obs_dim,
+                       critic_obs_dim=self.critic_obs_dim, joint_names=tuple(self.robot.joint_names),
+                       obs_layout=self.obs_layout(), phase_rate=self._phase_rate(),
+                       action_offset=self._action_offset_kind(), push_prior=self._push_prior())
+
+    def _phase_rate(self) -> float | None:
+        return None
+
+    def _action_offset_kind(self) -> str:
+        return "default"
+
+    def _push_prior(self) -> bool:
+        return False
+
+    def update_curriculum(self, progress: float) -> float:
+        """Once per training iteration: the penalty curriculum; a subclass adds its own."""
+        self._update_penalty_curriculum()
+        return progress
+
+    def curriculum_stats(self) -> dict:
+        return {"penalty_scale": float(self.penalty_scale)}
+
+    def pinned_observation_stats(self) -> list[tuple[list[int], float, float]]:
+        return []
 
     def _obs_dict(self) -> dict[str, torch.Tensor]:
         actor = self.obs_history.reshape(self.num_envs, -1)

@@ -131,6 +131,24 @@ class TrackingEnv(TrackingReference, TrackingResets, RobotEnv):
         psi = self.psi.double()
         return [(columns, float(psi.mean()), float(psi.var(unbiased=False)))]
 
+    def _phase_rate(self) -> float:
+        return float(self.dphi)
+
+    def _action_offset_kind(self) -> str:
+        return self.cfg.action_offset
+
+    def _push_prior(self) -> bool:
+        return self.push_table is not None
+
+    def curriculum_stats(self) -> dict:
+        stats = {"termination_threshold": float(self.termination_threshold), **super().curriculum_stats()}
+        if self.sampler.cfg.mode == "curriculum":
+            stats["psi_level"] = self.sampler.mean_level()
+            stats["psi_level_success"] = [round(v, 4) for v in self.sampler.level_success.tolist()]  # history only
+            if self.sampler.cfg.split_sides:
+                stats["psi_level_side"] = list(self.sampler.level_side)  # 0: short of the clip's ψ, 1: beyond
+        return stats
+
     def set_termination_threshold(self, value: float) -> float:
         c = self.cfg.terminations.keyframe_error
         self.termination_threshold = float(min(max(value, c.min), c.max))

@@ -172,8 +172,8 @@ class FastTD3Trainer(Trainer):
         self.steps_per_iteration = cfg.steps_per_iteration
         mirror = mirror_for_env(self.env, self.policy.raw_dim).to(self.device) if cfg.mirror else None
         self.td3 = FastTD3(self.policy, self.critic, cfg, mirror)
-        n = self.env.num_envs
-        actor_dim, critic_dim = self.env.actor_obs_dim, self.env.critic_obs_dim
+        n = self.spec.num_envs
+        actor_dim, critic_dim = self.spec.actor_obs_dim, self.spec.critic_obs_dim
         # TrackingEnv's critic observation starts with the actor's (trainer's obs_layout: critic_privileged after it)
         self.buffer = ReplayBuffer(max(cfg.buffer_size // n, cfg.learning_starts + 1), n, critic_dim, self.policy.raw_dim,
                                    self.device, actor_dim=actor_dim, actor_is_prefix=self._actor_is_prefix())
@@ -181,10 +181,9 @@ class FastTD3Trainer(Trainer):
         self._draw_explore_std(torch.ones(n, dtype=torch.bool, device=self.device))
 
     def _actor_is_prefix(self) -> bool:
-        layout = getattr(self.env, "obs_layout", None)
-        layout = layout() if callable(layout) else layout
+        layout = self.spec.obs_layout
         if isinstance(layout, dict) and "critic_privileged" in layout:
-            return all(start >= self.env.actor_obs_dim for start, _ in layout["critic_privileged"].values())
+            return all(start >= self.spec.actor_obs_dim for start, _ in layout["critic_privileged"].values())
         return False
 
     def _draw_explore_std(self, worlds: torch.Tensor) -> None:
@@ -193,7 +192,7 @@ class FastTD3Trainer(Trainer):
         self.explore_std = torch.where(worlds, fresh, self.explore_std)
 
     def _boundary(self, iteration: int, obs: dict | None) -> dict:
-        fresh = obs is None or (not self._env_has_state() and iteration % self.cfg.save_interval == 0)
+        fresh = obs is None or (not self.spec.resumable and iteration % self.cfg.save_interval == 0)
         obs = super()._boundary(iteration, obs)
         if fresh:  # every world starts a new episode
             self._draw_explore_std(torch.ones_like(self.explore_std, dtype=torch.bool))
@@ -276,10 +275,10 @@ def build_fast_td3_trainer(env, data, cfg: TrainConfig, run_dir, phase_rate: flo
     variant, net, td3 = cfg.variant_spec, cfg.network, cfg.fast_td3
     if variant.amp != "none":  # the config refuses this pairing too; a variant set per run (stages.py) lands here
         raise PipelineInputError("train", "algorithm", f"variant {cfg.variant!r} (AMP) trains with ppo only, not fast_td3")
-    policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
+    policy = Stage1Policy(env.spec().actor_obs_dim, env.spec().action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=variant.adaptive_phase_stage1, phase_rate=phase_rate,
                           normalize_obs=cfg.ppo.normalize_obs, output_bound=td3.action_bound)
-    critic = GroupCritic(env.critic_obs_dim, policy.raw_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
+    critic = GroupCritic(env.spec().critic_obs_dim, policy.raw_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
     pin_observation_stats(env, [policy.normalizer, critic.normalizer])
     meta = policy_meta(env, data, cfg, 1, phase_rate, output_bound=td3.action_bound)
     return FastTD3Trainer(env, policy, critic, cfg, run_dir, stage=1, meta=meta,

@@ -121,13 +121,9 @@ class Mirror:
 
 
 def mirror_for_env(env, raw_dim: int) -> Mirror:
-    """The env's mirror, from its observation layout and joint names; a clear error where it has none."""
-    layout = getattr(env, "obs_layout", None)
-    layout = layout() if callable(layout) else layout
-    if not isinstance(layout, dict) or "actor_frame" not in layout:
+    """The env's mirror, from its observation layout and joint names (its spec); a clear error where it has none."""
+    spec = env.spec()
+    if not isinstance(spec.obs_layout, dict) or "actor_frame" not in spec.obs_layout:
         raise PipelineInputError("train.fast_td3", "mirror", "the env gives no observation layout to mirror "
                                  "(TrackingEnv.obs_layout); set fast_td3.mirror: false")
-    joint_names = getattr(env, "joint_names", None)
-    if joint_names is None:  # TrackingEnv keeps them with its robot (the trainer's policy_meta reads them alike)
-        joint_names = env.robot.joint_names
-    return Mirror.from_layout(layout, joint_names, env.actor_obs_dim, env.critic_obs_dim, raw_dim)
+    return Mirror.from_layout(spec.obs_layout, spec.joint_names, spec.actor_obs_dim, spec.critic_obs_dim, raw_dim)

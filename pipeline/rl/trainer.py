@@ -8,10 +8,13 @@
 Each iteration: collect `steps_per_iteration` steps from every env, run the PPO update, update the
 termination curriculum, log, and every `save_interval` iterations write an atomic checkpoint.
 
-Resuming is bit-exact: a checkpoint holds the parameters, optimiser, RNG states and (when the env
-offers `state_dict()`/`load_state_dict()`) the env state and current observation. Envs without
-those are reset at every checkpoint boundary, in the uninterrupted run as in the resumed one, so
-both see the same next iteration as long as the env draws its randomness from torch's global RNG.
+The trainer reads the env through its contract only (pipeline/envs/spec.py: `spec()`, `reset`, `step`,
+`update_curriculum`, `curriculum_stats`, `pinned_observation_stats`, `state_dict`).
+
+Resuming is bit-exact: a checkpoint holds the parameters, optimiser, RNG states and (when the env's spec
+says `resumable`) the env state and current observation. Other envs are reset at every checkpoint
+boundary, in the uninterrupted run as in the resumed one, so both see the same next iteration as long as
+the env draws its randomness from torch's global RNG.
 """
 
 from __future__ import annotations
@@ -44,9 +47,6 @@ from pipeline.rl.stage2 import Stage2Policy
 
 SUCCESS_ERROR_M = SUCCESS_THRESHOLD_M  # an episode fails if the mean body error exceeds it at a keyframe
 MAX_PENDING_STEPS = 256  # steps of finished-episode figures kept on the device before a read-back
-CURRICULUM_HOOKS = ("update_termination_curriculum", "update_curriculum", "set_training_progress")
-
-
 class EpisodeStats:
     """Per-env returns and success flags; finished episodes go into a sliding window.
 
@@ -136,6 +136,7 @@ class Trainer:
                  l2c2: bool = False, amp: AMPDiscriminator | None = None, amp_reference: torch.Tensor | None = None,
                  use_phase_offset: bool = False, tensorboard: bool = True, progress: bool = True, log=print):
         self.env, self.policy, self.critic, self.cfg = env, policy, critic, cfg
+        self.spec = env.spec()
         self.run_dir = Path(run_dir)
         self.stage, self.meta, self.log = stage, meta, log
         self.device = torch.device(cfg.device if cfg.device != "cuda" or torch.cuda.is_available() else "cpu")
@@ -148,14 +149,14 @@ class Trainer:
         self.use_phase_offset = use_phase_offset
         self.checkpoints = CheckpointManager(self.run_dir, cfg.keep_checkpoints)
         self.average = WeightAverage() if cfg.average_tail > 0 else None
-        self.stats = EpisodeStats(env.num_envs, self.device)
+        self.stats = EpisodeStats(self.spec.num_envs, self.device)
         self.noise = None
         self._setup_algorithm(l2c2)
         self.history: list[dict] = []
         self.tensorboard, self.progress = tensorboard, progress
         self.joint_window = None
         if amp is not None:
-            self.joint_window = JointWindow(env.num_envs, env.action_dim, cfg.amp.window, self.device)
+            self.joint_window = JointWindow(self.spec.num_envs, self.spec.action_dim, cfg.amp.window, self.device)
 
     def _setup_algorithm(self, l2c2: bool) -> None:
         """PPO here; the off-policy trainer (fast_td3.FastTD3Trainer) sets up its own."""
@@ -164,29 +165,18 @@ class Trainer:
         self.ppo = PPO(self.policy, self.critic, self.cfg.ppo, l2c2=l2c2)
         # White noise (the paper's) is drawn inside policy.sample; correlated noise needs a state per world.
         if self.cfg.ppo.noise_correlation > 0:
-            self.noise = CorrelatedNoise(self.env.num_envs, self.policy.raw_dim, self.cfg.ppo.noise_correlation, self.device)
+            self.noise = CorrelatedNoise(self.spec.num_envs, self.policy.raw_dim, self.cfg.ppo.noise_correlation, self.device)
 
     # -- env helpers ------------------------------------------------------------------------
-    def _env_has_state(self) -> bool:
-        return hasattr(self.env, "state_dict") and hasattr(self.env, "load_state_dict")
-
-    def _curriculum(self, progress: float) -> None:
-        for name in CURRICULUM_HOOKS:
-            hook = getattr(self.env, name, None)
-            if callable(hook):
-                hook(progress)
-                return
-
-    def _joint_pos(self, info: dict) -> torch.Tensor:
-        if "joint_pos" in info:
-            return info["joint_pos"]
-        if hasattr(self.env, "joint_pos"):
-            return self.env.joint_pos
-        raise RuntimeError("AMP needs the robot's joint positions: the env gives neither info['joint_pos'] nor .joint_pos")
+    @staticmethod
+    def _joint_pos(info: dict) -> torch.Tensor:
+        if "joint_pos" not in info:
+            raise RuntimeError("AMP needs the robot's joint positions: the env's step gives no info['joint_pos']")
+        return info["joint_pos"]
 
     # -- one iteration ----------------------------------------------------------------------
     def collect(self, obs: dict) -> tuple[Rollout, dict, dict]:
-        steps, n = self.steps_per_iteration, self.env.num_envs
+        steps, n = self.steps_per_iteration, self.spec.num_envs
         raw_dim = self.policy.raw_dim
         ro = Rollout.allocate(steps, n, obs["actor"].shape[-1], obs["critic"].shape[-1], raw_dim, self.device)
         amp_windows = []
@@ -225,7 +215,7 @@ class Trainer:
 
     def _boundary(self, iteration: int, obs: dict | None) -> dict:
         """At checkpoint boundaries of envs without state, restart episodes (see module docstring)."""
-        if obs is None or (not self._env_has_state() and iteration % self.cfg.save_interval == 0):
+        if obs is None or (not self.spec.resumable and iteration % self.cfg.save_interval == 0):
             self.stats.reset()
             if self.joint_window is not None:
                 self.joint_window.filled.zero_()
@@ -276,22 +266,13 @@ class Trainer:
         for it in bar:
             obs = self._boundary(it, obs)
             progress = fraction_done(it)
-            self._curriculum(progress)
+            self.env.update_curriculum(progress)
             self.policy.train()
             stats, obs = self._iteration(obs)
             stats.update(self.stats.summary())
-            stats.update({"iteration": it + 1, "env_steps": (it + 1) * self.env.num_envs * self.steps_per_iteration,
+            stats.update({"iteration": it + 1, "env_steps": (it + 1) * self.spec.num_envs * self.steps_per_iteration,
                           "seconds": time.time() - t0})
-            for name in ("termination_threshold", "penalty_scale"):  # the env's curricula, when it has them
-                value = getattr(self.env, name, None)
-                if isinstance(value, (int, float)):
-                    stats[name] = float(value)
-            sampler = getattr(self.env, "sampler", None)
-            if sampler is not None and sampler.cfg.mode == "curriculum":
-                stats["psi_level"] = sampler.mean_level()
-                stats["psi_level_success"] = [round(v, 4) for v in sampler.level_success.tolist()]  # history only
-                if sampler.cfg.split_sides:
-                    stats["psi_level_side"] = list(sampler.level_side)  # 0: short of the clip's ψ, 1: beyond
+            stats.update(self.env.curriculum_stats())
             self.history.append(stats)
             if writer is not None:
                 for k, v in stats.items():
@@ -368,7 +349,7 @@ class Trainer:
     def _training_state(self, obs: dict) -> dict:
         state = {**self._algorithm_state(), "rng": rng_state(), "history": self.history,
                  "stats": self.stats.state_dict(), "stage": self.stage}
-        if self._env_has_state():
+        if self.spec.resumable:
             state["env"] = self.env.state_dict()
             state["obs"] = {k: v.clone() for k, v in obs.items()}
         if self.noise is not None:
@@ -414,7 +395,7 @@ class Trainer:
         self.history = list(state["history"])
         self.stats.load_state_dict(state["stats"])
         obs = None
-        if "env" in state and self._env_has_state():
+        if "env" in state and self.spec.resumable:
             self.env.load_state_dict(state["env"])
             obs = state["obs"]
         if self.noise is not None and "noise" in state:
@@ -482,11 +463,9 @@ def plot_curve(history: list[dict], path: Path, title: str) -> None:
 
 # ------------------------------------------------------------------------------------------ high level
 def phase_rate_of(env, data) -> float:
-    """Δφ per control step: from the env if it says, else control_dt / motion duration."""
-    for name in ("dphi", "phase_rate", "delta_phase"):
-        value = getattr(env, name, None)
-        if isinstance(value, (int, float)):
-            return float(value)
+    """Δφ per control step: the env's (its spec), else one frame of the motion per step."""
+    if env.spec().phase_rate is not None:
+        return float(env.spec().phase_rate)
     motion = data.motion
     return 1.0 / max(motion.num_frames - 1, 1)
 
@@ -495,23 +474,19 @@ def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, free
                 output_bound: float = 0.0) -> dict:
     from pipeline.robot.g1 import load_robot_config
 
-    robot = load_robot_config()
-    layout = getattr(env, "obs_layout", None)
-    if callable(layout):
-        layout = layout()
-    net = cfg.network
-    action_offset = getattr(getattr(env, "cfg", None), "action_offset", "default")
+    robot, spec = load_robot_config(), env.spec()
+    net, layout, action_offset = cfg.network, spec.obs_layout, spec.action_offset
     return {
         "robot": robot.name, "task": getattr(data, "task", None), "variant": cfg.variant, "stage": stage,
         # the trainer of this stage (stage 2 is always PPO)
         "algorithm": cfg.algorithm if stage == 1 else "ppo",
-        "joint_names": list(getattr(env, "joint_names", robot.joint_names)), "action_dim": int(env.action_dim),
-        "actor_obs_dim": int(env.actor_obs_dim), "critic_obs_dim": int(env.critic_obs_dim),
+        "joint_names": list(spec.joint_names), "action_dim": int(spec.action_dim),
+        "actor_obs_dim": int(spec.actor_obs_dim), "critic_obs_dim": int(spec.critic_obs_dim),
         "obs_layout": json.loads(json.dumps(layout, default=lambda x: list(x))) if layout is not None else None,
         "phase_rate": phase_rate,
         "action_offset": action_offset,
         # whether the zero action carries the task's push prior (priors/push_prior.py)
-        "push_prior": getattr(env, "push_table", None) is not None,
+        "push_prior": bool(spec.push_prior),
         "architecture": {"actor_hidden": net.actor_hidden, "critic_hidden": net.critic_hidden,
                          "adapter_hidden": net.adapter_hidden, "activation": net.activation,
                          "adaptive_phase": bool(cfg.variant_spec.adaptive_phase_stage1),
@@ -554,7 +529,7 @@ def _seed(seed: int) -> None:
 def pin_observation_stats(env, normalizers, keep_values: bool = False) -> None:
     """Holds the columns the env names (TrackingEnv.pinned_observation_stats) fixed in `normalizers`,
     at the env's values or, with `keep_values`, at the ones they hold."""
-    for columns, mean, var in getattr(env, "pinned_observation_stats", lambda: [])():
+    for columns, mean, var in env.pinned_observation_stats():
         for normalizer in normalizers:
             normalizer.pin(columns, None if keep_values else mean, None if keep_values else var)
 
@@ -576,9 +551,9 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
         return trainer.run(cfg.iterations_stage1 if iterations is None else iterations, resume=resume,
                            time_limit_s=time_limit_s, chunk_s=chunk_s)
     net = cfg.network
-    policy = Stage1Policy(env.actor_obs_dim, env.action_dim, net.actor_hidden, net.activation, net.init_log_std,
+    policy = Stage1Policy(env.spec().actor_obs_dim, env.spec().action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=variant.adaptive_phase_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
-    critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
+    critic = DoubleCritic(env.spec().critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
     pin_observation_stats(env, [policy.normalizer, critic.normalizer])
     amp, amp_ref = None, None
     if variant.amp != "none":
@@ -610,7 +585,7 @@ def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1
     net = cfg.network
     policy = Stage2Policy(base, net.adapter_hidden, net.activation, net.adapter_init_log_std,
                           freeze_base=variant.freeze_stage1, phase_rate=phase_rate, normalize_obs=cfg.ppo.normalize_obs)
-    critic = DoubleCritic(env.critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
+    critic = DoubleCritic(env.spec().critic_obs_dim, net.critic_hidden, net.activation, cfg.ppo.normalize_obs)
     pin_observation_stats(env, [policy.normalizer, critic.normalizer])
     # An unfrozen base keeps the scale it was trained with: its pinned columns stay where they are.
     pin_observation_stats(env, [base.normalizer], keep_values=True)
