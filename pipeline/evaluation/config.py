@@ -12,12 +12,12 @@ from pipeline.envs.falls import SUCCESS_THRESHOLD_M
 
 @dataclass(frozen=True)
 class VideoConfig:
-    width: int = 640
-    height: int = 480
+    width: int = 1280
+    height: int = 720
     fps: int = 25  # every 2nd control step of 50 Hz: real time, half the rendering cost
-    per_range: int = 2  # videos per ψ range when `psi` is not given (spread inside the range)
+    per_range: int = 1  # videos per ψ range when `psi` is not given (spread inside the range)
     psi: tuple[float, ...] = ()  # explicit ψ values; empty = `per_range` values per range
-    max_seconds: float = 12.0
+    max_seconds: float = 12.0  # the task alone, without a chain (a chain is rendered whole)
 
 
 @dataclass(frozen=True)
