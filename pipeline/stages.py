@@ -194,7 +194,8 @@ def run_evaluate(params: PipelineConfig, args) -> None:
         out_dir = paths.seed_results_dir(args.task, args.variant, seed)
     doc = evaluate_variant(task=args.task, variant=args.variant, data=data, env_cfg=params.env,
                            eval_cfg=params.evaluate, policy_dir=model_dir / "final" / "policy",
-                           out_dir=out_dir, videos=args.seed is None, balance_export=balance_export(params))
+                           out_dir=out_dir, videos=args.seed is None, balance_export=balance_export(params),
+                           handoff_after_landing_s=params.tasks[args.task].clip.handoff_after_landing_s)
     print(json.dumps(doc, indent=1, default=float)[:4000])
 
 
@@ -219,5 +220,6 @@ def run_export(params: PipelineConfig, args) -> None:
     data = _tracking_data(params, args.task, "adamimic")
     model_dir = paths.model_dir(args.task, args.variant)
     result = export_variant(task=args.task, variant=args.variant, data=data, policy_dir=model_dir / "final" / "policy",
-                            out_dir=model_dir / "export", env_cfg=params.env, balance_export=balance_export(params))
+                            out_dir=model_dir / "export", env_cfg=params.env, balance_export=balance_export(params),
+                            handoff_after_landing_s=params.tasks[args.task].clip.handoff_after_landing_s)
     print(f"exported {result.onnx} (torch/onnxruntime max abs diff {result.parity_max_abs_diff:.2e})")

@@ -134,3 +134,22 @@ def test_trains_exports_and_measures_a_tiny_run(tmp_path):
     policy, _ = load_policy(tmp_path / "train" / "policy")
     rate = standing_rate(policy, cfg, root=tmp_path, episodes=4, seconds=0.2)
     assert rate["episodes"] == 4 and 0.0 <= rate["upright"] <= 100.0 and rate["standing"] <= rate["upright"]
+
+
+def test_a_fine_tune_starts_from_the_named_run_and_counts_its_own_iterations(tmp_path):
+    """`balance.init_from` names a run folder: the fine-tune starts from its latest checkpoint and counts its own
+    iterations (tests/test_rl.py checks the weights it starts from); a folder without a checkpoint is refused."""
+    from pipeline.balance.config import BalanceConfig
+    from pipeline.balance.train import train_balance
+
+    tiny = {"start_states": "", "train": {"ppo": {"num_envs": 8, "steps_per_iteration": 4}, "save_interval": 1}}
+    train_balance(BalanceConfig.from_dict({"iterations": 2, **tiny}), tmp_path / "first", root=tmp_path,
+                  progress=False, tensorboard=False)
+    log = []
+    metrics = train_balance(BalanceConfig.from_dict({"iterations": 1, "init_from": "first", **tiny}),
+                            tmp_path / "second", root=tmp_path, progress=False, tensorboard=False, log=log.append)
+    assert metrics["iterations"] == 1
+    assert any("warm start from" in line and "iter_000002" in line for line in log)
+    with pytest.raises(PipelineInputError, match="init_from"):
+        train_balance(BalanceConfig.from_dict({"iterations": 1, "init_from": "nowhere", **tiny}), tmp_path / "third",
+                      root=tmp_path, progress=False, tensorboard=False)

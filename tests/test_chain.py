@@ -167,3 +167,44 @@ def test_delayed_targets_apply_what_was_sent_that_long_ago():
         delay.send(np.array([step + 1.0]))
         applied += [float(delay.applied()[0]) for _ in range(4)]
     assert applied == [0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3]
+
+
+def test_a_handoff_before_the_last_keyframe_judges_the_keyframes_up_to_it():
+    """The keyframes after a chain's handoff belong to no policy: the success test stops at the handoff."""
+    from pipeline.export.sim2sim import EpisodeJudge
+
+    meta = {"keyframes": {"phases": [0.3, 0.6, 0.9]}, "phase": {"num_frames": 10},
+            "terminations": {"max_tilt": 10.0, "min_base_height": 0.0}, "success_threshold_m": 1.0}
+    targets = np.zeros((3, 2, 3))
+    judge = EpisodeJudge(meta, 0.0, targets)
+    near, far = np.full((2, 3), 0.1), np.full((2, 3), 3.0)
+    judge.update(0.35, near, np.zeros(3), 0.8)
+    assert not judge.success_through(0.65)  # the keyframe at 0.6 is due and not reached
+    judge.update(0.65, near, np.zeros(3), 0.8)
+    assert judge.success_through(0.65) and judge.success_through(0.6)
+    assert not judge.success  # the whole test still asks for the last keyframe
+    judge.update(0.95, far, np.zeros(3), 0.8)
+    assert judge.success_through(0.65) and not judge.success_through(1.0) and not judge.success
+    assert not EpisodeJudge(meta, 0.0, targets).success_through(0.1)  # no keyframe due: nothing to succeed at
+
+
+def test_a_task_declares_its_handoff_after_its_last_landing():
+    from types import SimpleNamespace
+
+    from pipeline.export.chain import handoff_phase
+    from pipeline.keyframes.config import TaskConfig
+
+    motion = SimpleNamespace(num_frames=101, fps=50.0)
+    data = SimpleNamespace(task="hop", motion=motion, keyframe_frames=[20, 50, 60],
+                           keyframe_labels=("takeoff", "landing", ""))
+    assert handoff_phase(data, None) == 1.0
+    assert handoff_phase(data, 0.2) == pytest.approx((50 + 10) / 100)
+    assert handoff_phase(data, 5.0) == 1.0  # never past the task's end
+    with pytest.raises(PipelineInputError, match="landing"):
+        handoff_phase(SimpleNamespace(task="wave", motion=motion, keyframe_frames=[10], keyframe_labels=("",)), 0.1)
+
+    far = {"input": "x.npz", "edit": "x", "psi": {"raw": 1.1, "easy": [[0.7, 1.6]]}}
+    task = TaskConfig.from_dict("hop", {**far, "clip": {"handoff_after_landing_s": 0.1}})
+    assert task.clip.handoff_after_landing_s == 0.1 and TaskConfig.from_dict("hop", far).clip.handoff_after_landing_s is None
+    with pytest.raises(PipelineInputError, match="clip.handoff_after_landing_s"):
+        TaskConfig.from_dict("hop", {**far, "clip": {"handoff_after_landing_s": -1}})

@@ -44,13 +44,13 @@ def export(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def standing_export(tmp_path_factory):
-    """The stand-in task with the committed balance policy (models/pretrained/balance): a chain that stands
-    before the go and after the task, for the runs on the bridge."""
+    """The stand-in task with the committed balance policy the chains use (models/pretrained/balance_landing):
+    a chain that stands before the go and after the task, for the runs on the bridge."""
     from test_chain import chained_export, standin_task_export
 
     root = tmp_path_factory.mktemp("standing")
     return chained_export(standin_task_export(root / "task"), root / "export",
-                          balance=REPO / "models" / "pretrained" / "balance" / "export")
+                          balance=REPO / "models" / "pretrained" / "balance_landing" / "export")
 
 
 def _stance29(export, motors):

@@ -270,6 +270,25 @@ def test_resume_reproduces_the_next_iteration_bit_for_bit(tmp_path, noise_correl
     assert [h["policy_loss"] for h in straight.history] == [h["policy_loss"] for h in resumed.history]
 
 
+def test_a_warm_start_takes_the_networks_and_optimiser_but_counts_its_own_iterations(tmp_path):
+    cfg = small_cfg(save_interval=2, ppo={"num_envs": 32, "steps_per_iteration": 8, "epochs": 2, "minibatches": 2})
+    first = _trainer(tmp_path / "a", cfg, seed=0)
+    first.run(2)
+    tuned = _trainer(tmp_path / "b", cfg, seed=99)  # another init: what it starts from must come from the run
+    assert not all(torch.equal(a, b) for a, b in zip(first.policy.state_dict().values(),
+                                                      tuned.policy.state_dict().values()))
+    tuned.warm_start(tmp_path / "a")
+    for (k, a), b in zip(first.policy.state_dict().items(), tuned.policy.state_dict().values()):
+        assert torch.equal(a, b), k
+    for a, b in zip(first.critic.state_dict().values(), tuned.critic.state_dict().values()):
+        assert torch.equal(a, b)
+    assert tuned.ppo.learning_rate == first.ppo.learning_rate
+    tuned.run(1)
+    assert [h["iteration"] for h in tuned.history] == [1]
+    with pytest.raises(PipelineInputError, match="training_state.pt"):
+        tuned.warm_start(tmp_path / "nowhere")
+
+
 def test_weight_average_means_floats_and_keeps_the_latest_of_the_rest():
     average = WeightAverage()
     average.add({"w": torch.tensor([1.0, 2.0]), "n": torch.tensor(3)})

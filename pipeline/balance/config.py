@@ -24,15 +24,18 @@ class BalanceConfig:
     out: str = DEFAULT_OUT  # where the trained policy, its export and its evaluation go
     eval_episodes: int = 1000  # the standing test: episodes of `eval_seconds` under randomisation and pushes
     eval_seconds: float = 10.0
+    # a fine-tune: start from this checkpoint folder's networks and optimiser (e.g. the committed policy's
+    # `train` run folder: its latest checkpoint) instead of from scratch; "" trains from scratch
+    init_from: str = ""
 
     @classmethod
     def from_dict(cls, raw: dict | None, profile: str = "cpu", where: str = "balance") -> "BalanceConfig":
         raw = dict(raw or {})
         unknown = sorted(set(raw) - {"env", "train", "iterations", "time_limit_s", "start_states", "out",
-                                     "eval_episodes", "eval_seconds"})
+                                     "eval_episodes", "eval_seconds", "init_from"})
         if unknown:
             raise PipelineInputError(where, unknown[0], "unknown key (expected env, train, iterations, time_limit_s, "
-                                     "start_states, out, eval_episodes, eval_seconds)")
+                                     "start_states, out, eval_episodes, eval_seconds, init_from)")
         env = BalanceEnvConfig.from_dict(raw.pop("env", None), where=f"{where}.env")
         train = TrainConfig.from_dict({**(raw.pop("train", None) or {}), "profile": profile}, where=f"{where}.train")
         cfg = cls(env=env, train=train, **raw)

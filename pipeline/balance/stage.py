@@ -1,6 +1,6 @@
 """`stages/train_balance.py`: train the balance policy, export it and measure how it stands.
 
-Not a `dvc repro` stage: the policy is committed under `balance.out` (models/pretrained/balance) and
+Not a `dvc repro` stage: the policy is committed under `balance.out` (models/pretrained/balance_landing) and
 every task's chain reads it from there, so a fresh clone never retrains it. Rerun it after changing
 `balance:` in params.yaml (chunked: `--chunk-minutes M`, then `--resume`).
 """

@@ -53,4 +53,6 @@ def train_balance(cfg: BalanceConfig, run_dir: str | Path, *, root: Path = Path(
     critic = DoubleCritic(env.spec().critic_obs_dim, net.critic_hidden, net.activation, train.ppo.normalize_obs)
     trainer = Trainer(env, policy, critic, train, run_dir, stage=1, meta=balance_meta(env, cfg), l2c2=False,
                       **trainer_kwargs)
+    if cfg.init_from and (not resume or trainer.checkpoints.latest() is None):
+        trainer.warm_start(root / cfg.init_from)
     return trainer.run(cfg.iterations, resume=resume, time_limit_s=cfg.time_limit_s or None, chunk_s=chunk_s)

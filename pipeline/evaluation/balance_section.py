@@ -35,13 +35,17 @@ def read_balance_metrics(path: Path) -> dict:
     return doc
 
 
-def balance_section(root: Path, page: Path, folder: Path, doc: dict) -> list[str]:
+def balance_section(root: Path, page: Path, folder: Path, doc: dict, in_use: bool = True) -> list[str]:
+    """The standing rates of one committed balance policy; `in_use`: the one the chains hand over to
+    (params.yaml `balance.out`)."""
     source = folder / "metrics.json"
-    out = ["## The balance policy", "",
-           "Every chain stands with it before the go and after the task (`models/pretrained/" + folder.name + "`). "
+    role = ("Every chain the pipeline exports stands with it before the go and after the task" if in_use else
+            "A committed balance policy the chains no longer use (params.yaml `balance.out` names the one they do)")
+    out = [f"## The balance policy `{folder.name}`", "",
+           f"{role} (`models/pretrained/{folder.name}`). "
            f"From [`{source.relative_to(root).as_posix()}`]({_link(source, page.parent)}).", "",
            "| starts | episodes | seconds | upright (%) | standing (%) | fell (%) |", "|---|---|---|---|---|---|"]
-    for starts, label in (("stance", "the stance at rest"), ("recorded", "the task policies' end states")):
+    for starts, label in (("stance", "the stance at rest"), ("recorded", "the task policies' recorded states")):
         if starts in doc:
             r = doc[starts]
             out.append(f"| {label} | {r['episodes']} | {r['seconds']:g} | {r['upright']:.1f} | {r['standing']:.1f} | "

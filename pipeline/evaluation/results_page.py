@@ -226,6 +226,17 @@ def copy_keyframes_figure(source: Path, path: Path) -> bool:
     return True
 
 
+def chain_balance(root: Path) -> Path | None:
+    """The balance policy folder the chains use (params.yaml `balance.out`), None where the root has no params."""
+    params = root / "params.yaml"
+    if not params.is_file():
+        return None
+    import yaml
+
+    out = ((yaml.safe_load(params.read_text()) or {}).get("balance") or {}).get("out")
+    return (root / out).resolve() if out else None
+
+
 def rollout_video(media: Path) -> Path | None:
     """The rollout to show: an easy-range one if there is one (the task's main case), else the first."""
     videos = sorted(media.glob("*.mp4")) if media.is_dir() else []
@@ -391,8 +402,9 @@ def render_page(root: Path, page: Path, img_dir: Path, found: Found) -> str:
     for task, entries in pre_by_task.items():
         out += task_section(root, page, img_dir, f"{task} (pretrained)" if task in by_task else task, entries,
                             "A committed policy under `models/pretrained/`")
+    in_use = chain_balance(root)
     for folder, doc in found.balance:
-        out += balance_section(root, page, folder, doc)
+        out += balance_section(root, page, folder, doc, in_use is None or folder.resolve() == in_use)
     if not by_task and not pre_by_task:
         out += ["No evaluated policy yet: `dvc repro` writes `results/<task>/<variant>/metrics.json`.", ""]
     if recipes:

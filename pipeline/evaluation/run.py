@@ -58,7 +58,8 @@ def _expectations(env_cfg, data) -> dict:
 
 
 def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalConfig, policy_dir: str | Path,
-                     out_dir: str | Path, videos: bool = True, balance_export: str | Path | None = None) -> dict:
+                     out_dir: str | Path, videos: bool = True, balance_export: str | Path | None = None,
+                     handoff_after_landing_s: float | None = None) -> dict:
     module, meta = load_checked_policy(policy_dir, task, _expectations(env_cfg, data))
     policy = PolicyRunner(module, eval_cfg.device, eval_cfg.deterministic)
     make_env = default_env_factory(env_cfg, eval_cfg)
@@ -74,7 +75,8 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with scratch_export(task=task, variant=variant, data=data, env_cfg=env_cfg, policy_dir=policy_dir,
-                        balance_export=balance_export, needed=videos or balance_export is not None) as export:
+                        balance_export=balance_export, handoff_after_landing_s=handoff_after_landing_s,
+                        needed=videos or balance_export is not None) as export:
         if balance_export is not None:  # the chain from the stance at rest: rest_to_rest, nominal and randomised
             from pipeline.evaluation.chain_eval import merge_chain
 
@@ -97,7 +99,8 @@ def evaluate_variant(*, task: str, variant: str, data, env_cfg, eval_cfg: EvalCo
 
 
 @contextmanager
-def scratch_export(*, task, variant, data, env_cfg, policy_dir, balance_export, needed: bool = True):
+def scratch_export(*, task, variant, data, env_cfg, policy_dir, balance_export, handoff_after_landing_s=None,
+                   needed: bool = True):
     """The policy exported (with its chain when a balance policy is given) into a temporary folder: what the
     chain evaluation and the videos run, the deployment loop a robot runs. None when not `needed`."""
     import tempfile
@@ -111,7 +114,7 @@ def scratch_export(*, task, variant, data, env_cfg, policy_dir, balance_export, 
     with tempfile.TemporaryDirectory(prefix="adamimic-eval-") as scratch:
         export = Path(scratch) / "export"
         export_variant(task=task, variant=variant, data=data, policy_dir=policy_dir, out_dir=export, env_cfg=env_cfg,
-                       balance_export=balance_export)
+                       balance_export=balance_export, handoff_after_landing_s=handoff_after_landing_s)
         yield export
 
 

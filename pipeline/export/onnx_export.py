@@ -27,7 +27,9 @@ METADATA_NAME = "policy.json"
 HUB_FILES = ("config.json", "model.safetensors")
 INPUT_NAME = "obs"
 OUTPUT_NAMES = ("joint_targets", "action", "phase_rate_offset")
-PARITY_TOLERANCE = 1e-5
+# rad (joint targets) and action units: float32 rounding through the network on the parity check's wide random
+# inputs reaches 2e-5; 1e-4 rad is below a G1 joint encoder's step (2π / 2^14 ≈ 3.8e-4 rad)
+PARITY_TOLERANCE = 1e-4
 OPSET = 17
 
 
@@ -192,10 +194,12 @@ class ExportResult:
 
 
 def export_folder(module: DeployedPolicy, obs_dim: int, metadata: dict, out_dir: str | Path,
-                  source_dir: str | Path | None = None, balance_export: str | Path | None = None) -> ExportResult:
+                  source_dir: str | Path | None = None, balance_export: str | Path | None = None,
+                  chain: dict | None = None) -> ExportResult:
     """The hub-format folder: config.json + model.safetensors (copied from the trained policy
     folder `source_dir`), policy.onnx and policy.json, and with `balance_export` the balance policy
-    and the chain's handoff rule (export/chain.py). Fails (nothing written) if parity fails."""
+    and the chain's handoff rule (export/chain.py; `chain`: chain.json's fields other than the defaults).
+    Fails (nothing written) if parity fails."""
     out_dir = Path(out_dir)
     if source_dir is not None:
         missing = [n for n in HUB_FILES if not (Path(source_dir) / n).is_file()]
@@ -214,15 +218,16 @@ def export_folder(module: DeployedPolicy, obs_dim: int, metadata: dict, out_dir:
         if balance_export is not None:
             from pipeline.export.chain import write_chain
 
-            write_chain(staging, balance_export)
+            write_chain(staging, balance_export, **(chain or {}))
     return ExportResult(out_dir, out_dir / ONNX_NAME, out_dir / METADATA_NAME, diff)
 
 
 def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out_dir: str | Path,
-                   env_cfg=None, balance_export: str | Path | None = None) -> ExportResult:
+                   env_cfg=None, balance_export: str | Path | None = None,
+                   handoff_after_landing_s: float | None = None) -> ExportResult:
     """The `export` stage: trained policy folder (models/<task>/<variant>/final) → hub-format
     folder with policy.onnx + policy.json (models/<task>/<variant>/export), and the balance policy
-    the chain stands with (`balance_export`, models/pretrained/balance/export) in its `balance/`."""
+    the chain stands with (`balance_export`, params.yaml `balance.out`/export) in its `balance/`."""
     from pipeline.export.metadata import build_metadata, observation_layout, termination_metadata, terrain_metadata
     from pipeline.rl.checkpoint import load_policy
     from pipeline.robot.g1 import load_robot_config
@@ -263,4 +268,8 @@ def export_variant(*, task: str, variant: str, data, policy_dir: str | Path, out
         reference = ReferenceOffset.for_layout(metadata["reference"]["joint_target"], metadata["phase"]["rate"], layout,
                                                push_prior)
     module = DeployedPolicy(module, robot.default_joint_pos, robot.action_scale, reference=reference)
-    return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir, balance_export=balance_export)
+    from pipeline.export.chain import handoff_phase
+
+    chain = {"handoff_phase": handoff_phase(data, handoff_after_landing_s)}
+    return export_folder(module, layout["dim"], metadata, out_dir, source_dir=policy_dir, balance_export=balance_export,
+                         chain=chain)

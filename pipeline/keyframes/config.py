@@ -135,6 +135,9 @@ class ClipWindow:
     # Seconds from the stance at rest to the window's first frame, prepended after the keyframes are chosen
     # (keyframes/lead_in.py): the task then starts where a standing robot is. 0: none.
     lead_in_s: float = 0.0
+    # Where the chain hands the robot to the balance policy: this long after the last landing keyframe
+    # (export/chain.py `handoff_phase`; the keyframes after it are judged by no one). None: at the window's end.
+    handoff_after_landing_s: float | None = None
 
     def frames(self, fps: float, num_frames: int, task: str) -> tuple[int, int]:
         """The window as a slice [start, stop) of a clip with `num_frames` frames at `fps`."""
@@ -413,14 +416,17 @@ _TASK_KEYS = {"input", "keyframes", "edit", "psi", "sparse_scale", "terrain", "n
 def _parse_clip(name: str, raw) -> ClipWindow:
     if raw is None:
         return ClipWindow()
-    _check_keys(name, "clip", raw, {"start_s", "end_s", "lead_in_s"})
+    _check_keys(name, "clip", raw, {"start_s", "end_s", "lead_in_s", "handoff_after_landing_s"})
     start = _number(name, "clip.start_s", raw.get("start_s", 0.0), nonneg=True)
     end = raw.get("end_s")
     if end is not None:
         end = _number(name, "clip.end_s", end, positive=True)
         if end <= start:
             raise _err(name, "clip.end_s", f"must be after clip.start_s ({start} s), got {end}")
-    return ClipWindow(start, end, _number(name, "clip.lead_in_s", raw.get("lead_in_s", 0.0), nonneg=True))
+    handoff = raw.get("handoff_after_landing_s")
+    if handoff is not None:
+        handoff = _number(name, "clip.handoff_after_landing_s", handoff, nonneg=True)
+    return ClipWindow(start, end, _number(name, "clip.lead_in_s", raw.get("lead_in_s", 0.0), nonneg=True), handoff)
 
 
 def _parse_push_prior(name: str, raw, edit: EditConfig) -> PushPriorConfig:

@@ -19,21 +19,25 @@ def _font(size: int):
 
 
 def draw_caption(frame: np.ndarray, lines: list[str], scale: float = 1.0) -> np.ndarray:
-    """The frame (H, W, 3 uint8) with `lines` on a dark translucent box; returns a new array."""
+    """The frame (H, W, 3 uint8) with `lines` on a dark translucent box; returns a new array. Only the box's
+    corner of the frame is composited (a whole 1280x720 frame through Pillow costs more than the text)."""
     if not lines:
         return frame
     from PIL import Image, ImageDraw
 
     size = max(10, int(round(frame.shape[0] / 36 * scale)))
     font = _font(size)
-    image = Image.fromarray(np.ascontiguousarray(frame[..., :3])).convert("RGBA")
-    overlay = Image.new("RGBA", image.size, (0, 0, 0, 0))
-    draw = ImageDraw.Draw(overlay)
     pad, gap = size // 2, size // 4
-    widths = [draw.textlength(line, font=font) for line in lines]
+    widths = [font.getlength(line) for line in lines]
     box_w = int(max(widths)) + 2 * pad
     box_h = len(lines) * size + (len(lines) - 1) * gap + 2 * pad
+    corner_h, corner_w = min(frame.shape[0], box_h + 2 * pad), min(frame.shape[1], box_w + 2 * pad)
+    out = np.array(frame[..., :3], copy=True)
+    corner = Image.fromarray(np.ascontiguousarray(out[:corner_h, :corner_w])).convert("RGBA")
+    overlay = Image.new("RGBA", corner.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(overlay)
     draw.rectangle([pad, pad, pad + box_w, pad + box_h], fill=(0, 0, 0, 140))
     for i, line in enumerate(lines):
         draw.text((2 * pad, 2 * pad + i * (size + gap)), line, font=font, fill=(255, 255, 255, 255))
-    return np.asarray(Image.alpha_composite(image, overlay).convert("RGB"))
+    out[:corner_h, :corner_w] = np.asarray(Image.alpha_composite(corner, overlay).convert("RGB"))
+    return out

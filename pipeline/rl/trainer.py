@@ -150,6 +150,7 @@ class Trainer:
         self.checkpoints = CheckpointManager(self.run_dir, cfg.keep_checkpoints)
         self.average = WeightAverage() if cfg.average_tail > 0 else None
         self.stats = EpisodeStats(self.spec.num_envs, self.device)
+        self.warm_started = False  # warm_start: this run began from another run's networks
         self.noise = None
         self._setup_algorithm(l2c2)
         self.history: list[dict] = []
@@ -248,7 +249,7 @@ class Trainer:
         start, obs = 0, None
         if resume:
             start, obs = self._restore()
-        if start == 0:
+        if start == 0 and not self.warm_started:
             self._warm_up_normalizers()
         writer = self._writer()
         # Wall time counts across resumes, so a time limit caps the whole run.
@@ -373,6 +374,26 @@ class Trainer:
 
     def _save(self, iteration: int, obs: dict) -> None:
         self.checkpoints.save(iteration, self.policy, self.critic, self.meta, self._training_state(obs))
+
+    def warm_start(self, path: str | Path) -> None:
+        """Starts this run from a checkpoint's networks (normalisers included) and optimiser, with its own
+        iteration count, history, curricula and env: a fine-tune. Before `run`, which then leaves the
+        normalisers' statistics as they came."""
+        path = Path(path)
+        if (path / "checkpoints").is_dir():  # a run folder: its latest checkpoint
+            path = path / "checkpoints"
+        if (path / "latest").is_file():  # a checkpoints folder: the one its pointer names
+            path = CheckpointManager(path.parent, 1).latest() or path
+        if not (path / "training_state.pt").is_file():
+            raise PipelineInputError(path, "training_state.pt", "not a training checkpoint (init_from names a run, its "
+                                     "checkpoints folder or one checkpoint)")
+        check_compatible(read_meta(path), self.meta, path)
+        policy, _ = load_policy(path)
+        self.policy.load_state_dict(policy.state_dict())
+        self._load_critic(path)
+        self._load_algorithm_state(CheckpointManager.load_state(path), path)
+        self.warm_started = True
+        self.log(f"[train] warm start from {path}")
 
     def _restore(self) -> tuple[int, dict | None]:
         path = self.checkpoints.latest()
