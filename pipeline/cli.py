@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     play.add_argument("policy", type=Path, help="exported policy folder (policy.onnx + policy.json)")
     play.add_argument("--psi", type=float, required=True, help="task variable, metres")
     play.add_argument("--out", type=Path, default=Path("play.mp4"))
-    play.add_argument("--seconds", type=float, default=None)
+    play.add_argument("--seconds", type=float, default=None, help="stop the video here (default: the whole chain)")
 
     sim2sim = sub.add_parser("sim2sim", help="deployment-style MuJoCo loop on the ONNX policies alone: stand, go, "
                                              "task, balance; one JSON line per psi")

@@ -153,3 +153,18 @@ def test_a_fine_tune_starts_from_the_named_run_and_counts_its_own_iterations(tmp
     with pytest.raises(PipelineInputError, match="init_from"):
         train_balance(BalanceConfig.from_dict({"iterations": 1, "init_from": "nowhere", **tiny}), tmp_path / "third",
                       root=tmp_path, progress=False, tensorboard=False)
+
+
+def test_the_heading_term_pays_for_facing_where_the_episode_started_only_when_weighted():
+    import math
+
+    plain = _env(QUIET, n=2)
+    assert "heading" not in plain._dense_term_names()  # weight 0: the sum the earlier policies were trained on
+    env = _env({**QUIET, "rewards": {"weights": {"heading": 1.0}}}, n=2)
+    assert "heading" in env._dense_term_names()
+    env.reset()
+    info = env.step(torch.zeros(2, env.action_dim))[4]
+    assert torch.allclose(info["terms"]["heading"], torch.ones(2), atol=1e-3)  # still facing the start
+    env.start_yaw = torch.tensor([0.0, 0.5])  # as if world 1 had started turned 0.5 rad the other way
+    info = env.step(torch.zeros(2, env.action_dim))[4]
+    assert info["terms"]["heading"][1] == pytest.approx(math.exp(-0.25 / 0.05), rel=0.05)

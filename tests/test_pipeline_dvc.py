@@ -150,7 +150,8 @@ def _dvc(repo: Path, *args: str) -> str:
 def _tiny(raw: dict) -> None:
     """Sizes that exercise every stage in seconds."""
     raw["train"].update(iterations_stage1=1, iterations_stage2=1, ppo={"num_envs": 8, "steps_per_iteration": 8})
-    raw["evaluate"].update(episodes_per_range=2, runs=1, num_envs=2, video={"per_range": 1, "max_seconds": 1.0})
+    raw["evaluate"].update(episodes_per_range=2, runs=1, num_envs=2,
+                           video={"per_range": 1, "max_seconds": 1.0, "width": 320, "height": 180})
 
 
 @pytest.mark.slow

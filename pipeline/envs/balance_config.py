@@ -23,6 +23,8 @@ class BalanceRewardWeights(PenaltyWeights):
     ang_vel: float = 0.5  # base angular velocity: still
     default_pose: float = 0.5  # joints at the default pose
     stance: float = 0.5  # each foot under the pelvis where the stance puts it: steps back into the stance
+    # the heading the episode started with: a chain's task starts facing where the robot stood (0: off)
+    heading: float = 0.0
     # sparse group: a fall (the only event of the task)
     termination: float = -200.0
     # gentler than the tracking task's -0.5: a balance policy has to move fast when pushed
@@ -37,6 +39,7 @@ class BalanceSigmas:
     ang_vel: float = 1.0  # (rad/s)²
     default_pose: float = 0.1  # mean rad² over the joints
     stance: float = 0.01  # m², each foot's horizontal offset in the pelvis's heading frame
+    heading: float = 0.05  # rad², the turn from the start's heading: 13° pays exp(−1)
 
 
 @dataclass

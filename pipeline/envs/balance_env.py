@@ -4,8 +4,9 @@ The policy sees proprioception only (what `adamimic deploy` measures: no odometr
 aims the joints at the default pose plus `action_scale · action`. Episodes start at the stance at
 rest with noise, lowered from a little above it, or in a recorded state (the task policies' own
 ends: `pipeline/balance/starts.py`), under the paper's domain randomisation and pushes every 1–3 s.
-The dense group pays upright, stance height, stillness, the default pose and each foot back under
-the pelvis where the stance puts it, less the shared penalties; the sparse group is the fall alone.
+The dense group pays upright, stance height, stillness, the default pose, each foot back under
+the pelvis where the stance puts it and (where weighted) the heading the episode started with, less the
+shared penalties; the sparse group is the fall alone.
 An episode ends in a fall (`falls.fall_flags`) or, truncated, after `episode_s`.
 """
 
@@ -19,10 +20,10 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.envs import rewards as R
 from pipeline.envs.balance_config import BalanceEnvConfig
 from pipeline.envs.robot_env import PENALTY_TERMS, RobotEnv, proprio_dim
-from pipeline.envs.torch_math import projected_gravity, quat_rotate_inverse, yaw_quat
+from pipeline.envs.torch_math import projected_gravity, quat_rotate_inverse, wrap_angle, yaw_angle, yaw_quat
 from pipeline.robot.g1 import default_qpos, load_robot_config
 
-_DENSE_TERMS = ("upright", "base_height", "lin_vel", "ang_vel", "default_pose", "stance") + PENALTY_TERMS
+_DENSE_TERMS = ("upright", "base_height", "lin_vel", "ang_vel", "default_pose", "stance", "heading") + PENALTY_TERMS
 PRIVILEGED_DIM = 3 + 1 + 2  # base linear velocity (base frame), pelvis height, feet in contact
 
 
@@ -46,7 +47,7 @@ def flat_scene(physics: str, source: str) -> mujoco.MjModel:
 
 
 class BalanceEnv(RobotEnv):
-    _STATE_BUFFERS = RobotEnv.SHARED_BUFFERS
+    _STATE_BUFFERS = RobotEnv.SHARED_BUFFERS + ("start_yaw",)
 
     def __init__(self, cfg: BalanceEnvConfig, *, num_envs: int, start_states: dict | None = None, backend="cpu",
                  device="cpu"):
@@ -66,6 +67,7 @@ class BalanceEnv(RobotEnv):
         self.penalty_curriculum_started = False
         self._clear_episode_counts()
         self._alloc_shared_state(proprio_dim(self.num_joints), PRIVILEGED_DIM)
+        self.start_yaw = torch.zeros(self.num_envs, device=self.device)  # each episode's first heading
         self.difficulty = 1.0  # full pushes, delays and recorded starts until a trainer's curriculum says otherwise
 
     # ------------------------------------------------------------------------------------ set-up
@@ -111,7 +113,13 @@ class BalanceEnv(RobotEnv):
         return self.difficulty
 
     def _dense_term_names(self) -> tuple[str, ...]:
-        return _DENSE_TERMS
+        # a heading weight of 0 leaves the term out of the sum: the policies trained before it sum the same
+        return tuple(n for n in _DENSE_TERMS if n != "heading" or self.cfg.rewards.weights.heading != 0.0)
+
+    def _upgrade_buffers(self, buffers: dict) -> dict:
+        if "start_yaw" not in buffers:  # states saved before the heading reward: the stance's heading
+            buffers["start_yaw"] = torch.zeros_like(self.start_yaw)
+        return buffers
 
     def _step(self, action: torch.Tensor, phase_rate_offset=None):
         action = action.to(self.device, torch.float32).clamp(-self.cfg.action_clip, self.cfg.action_clip)
@@ -156,9 +164,10 @@ class BalanceEnv(RobotEnv):
             "ang_vel": torch.exp(-(qvel[:, 3:6] ** 2).sum(-1) / s2.ang_vel),
             "default_pose": R.joint_kernel(joint_pos, self.default_joint_pos, s2.default_pose),
             "stance": torch.exp(-((feet - self.stance_feet_xy) ** 2).sum(-1).mean(-1) / s2.stance),
+            "heading": torch.exp(-wrap_angle(yaw_angle(root_quat) - self.start_yaw) ** 2 / s2.heading),
             **self._penalty_terms(joint_pos, joint_vel, joint_acc, torque, site_quat[:, self.feet_idx], foot_contact, action),
         }
-        dense = (torch.stack([terms[name] for name in _DENSE_TERMS], -1) * self._dense_weights).sum(-1)
+        dense = (torch.stack([terms[name] for name in self._dense_term_names()], -1) * self._dense_weights).sum(-1)
         fc = cfg.terminations
         by_tilt, by_height = self._falls(gravity[:, :2], root_pos[:, 2], fc.max_tilt, fc.min_base_height)
         terminated = by_tilt | by_height
@@ -188,6 +197,9 @@ class BalanceEnv(RobotEnv):
             scale = lo + (hi - lo) * torch.rand(recorded.numel(), 1, device=dev)
             qpos[recorded] = self.start_states["qpos"][pick]
             qvel[recorded] = self.start_states["qvel"][pick] * scale
+        start_yaw = self.start_yaw.clone()  # a new tensor: callers hold the old
+        start_yaw[ids] = yaw_angle(qpos[:, 3:7])
+        self.start_yaw = start_yaw
         self.backend.set_state(ids, qpos, qvel, forward=False)  # observations read qpos/qvel only
         self._randomize_worlds(ids, self.stance_target)
         self._restart_episodes(ids, qvel[:, 6:])

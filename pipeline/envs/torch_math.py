@@ -62,9 +62,19 @@ def projected_gravity(q: torch.Tensor) -> torch.Tensor:
     return torch.stack((2.0 * (w * y - x * z), -2.0 * (y * z + w * x), -(1.0 - 2.0 * (x * x + y * y))), dim=-1)
 
 
+def wrap_angle(a: torch.Tensor) -> torch.Tensor:
+    """Angles to (−π, π]."""
+    return torch.remainder(a + torch.pi, 2.0 * torch.pi) - torch.pi
+
+
+def yaw_angle(q: torch.Tensor) -> torch.Tensor:
+    """The heading of q (rad, about world z, in (−π, π])."""
+    w, x, y, z = q.unbind(-1)
+    return torch.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 def yaw_quat(q: torch.Tensor) -> torch.Tensor:
     """The heading (rotation about world z) part of q."""
-    w, x, y, z = q.unbind(-1)
-    yaw = torch.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    yaw = yaw_angle(q)
     zero = torch.zeros_like(yaw)
     return torch.stack((torch.cos(0.5 * yaw), zero, zero, torch.sin(0.5 * yaw)), dim=-1)

@@ -17,7 +17,7 @@ class VideoConfig:
     fps: int = 25  # every 2nd control step of 50 Hz: real time, half the rendering cost
     per_range: int = 1  # videos per ψ range when `psi` is not given (spread inside the range)
     psi: tuple[float, ...] = ()  # explicit ψ values; empty = `per_range` values per range
-    max_seconds: float = 12.0  # the task alone, without a chain (a chain is rendered whole)
+    max_seconds: float = 12.0  # a video stops here (a chain: 2 s standing, the task, 3 s after it)
 
 
 @dataclass(frozen=True)

@@ -46,8 +46,8 @@ def caption_lines(task: str, psi: float, stretch: str, phase: float, seconds: fl
 def play_to_mp4(policy_dir: str | Path, psi: float, out: str | Path = "play.mp4", seconds: float | None = None,
                 width: int = 1280, height: int = 720, fps: int = 25, task: str | None = None,
                 ghost: bool = True) -> Path:
-    """The whole chain when the export has one (seconds: ignored), else the task alone (cut at `seconds`).
-    Returns the mp4's path; its frame count is the episode's control steps / (control rate / fps)."""
+    """The whole chain when the export has one, else the task alone; the video stops at `seconds` (None: at
+    the episode's end). Returns the mp4's path; its frame count is the control steps shown / (control rate / fps)."""
     run, runner = _episode(policy_dir, task)
     control_hz = 1.0 / runner.control_dt
     every = max(1, int(round(control_hz / fps)))
@@ -59,7 +59,7 @@ def play_to_mp4(policy_dir: str | Path, psi: float, out: str | Path = "play.mp4"
     def on_step(model, data, info):
         if info.get("stretch") == "task" or "stretch" not in info:
             state["phase"] = float(info["phase"])
-        if info["step"] % every:
+        if info["step"] % every or (max_steps is not None and info["step"] > max_steps):
             return
         if state["renderer"] is None:
             state["renderer"] = Renderer(model, width, height)

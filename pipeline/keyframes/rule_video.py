@@ -54,7 +54,8 @@ def _ghost_frames(data: TrackingData, num_motions: int, fps_out: float, size: tu
     chosen = _chosen(data, num_motions)
     lanes = LANE_M * np.arange(1, len(chosen) + 1)
     rig = CameraRig(distance=3.0 + 0.5 * lanes[-1], azimuth=135.0, elevation=-15.0)
-    renderer = Renderer(model, *size, rig=rig)  # raises RuntimeError without GL, before any frame
+    # no shadow: five ghosts' meshes through a shadow pass would cost three times as much on a CPU
+    renderer = Renderer(model, *size, rig=rig, shadows=False)  # raises RuntimeError without GL, before any frame
     scene_data = mujoco.MjData(model)
     qidx = joint_qpos_indices(model, motion.joint_names)
     offsets = data.dense_offsets[chosen].copy()  # (N, T, 3)

@@ -32,24 +32,27 @@ def _human_at(human: HumanMotion, motion: Motion, scale: float, duration_scale: 
 
 def write_preview(human: HumanMotion, motion: Motion, path: str | Path, scale: float | None = None,
                   width: int = 960, height: int = 540, progress: bool = True, duration_scale: float = 1.0,
-                  title: str = "") -> Path:
+                  title: str = "", fps_out: float = 25.0) -> Path:
+    """The preview in real time at about `fps_out` (every k-th frame of the motion)."""
     from tqdm import tqdm
 
     from pipeline.render.mp4 import Mp4Writer
 
     scale = scale if scale is not None else 1.32 / human.height
     skeleton = _human_at(human, motion, scale, duration_scale)
+    step = max(1, int(round(motion.fps / fps_out)))
+    shown = range(0, motion.num_frames, step)
     try:
-        frames = _mujoco_frames(motion, skeleton, width, height, title)
+        frames = _mujoco_frames(motion, skeleton, width, height, title, shown)
     except Exception:  # noqa: BLE001 - no GL context here: draw with matplotlib instead
-        frames = _matplotlib_frames(motion, skeleton, width, height)
-    writer = Mp4Writer(path, int(round(motion.fps)), width, height)
-    for rgb in tqdm(frames, total=motion.num_frames, desc="preview", disable=not progress, leave=False):
+        frames = _matplotlib_frames(motion, skeleton, width, height, shown)
+    writer = Mp4Writer(path, max(1, int(round(motion.fps / step))), width, height)
+    for rgb in tqdm(frames, total=len(shown), desc="preview", disable=not progress, leave=False):
         writer.add(rgb)
     return writer.close()
 
 
-def _mujoco_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int, title: str):
+def _mujoco_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int, title: str, shown: range):
     import mujoco
 
     from pipeline.render.renderer import CameraRig, Renderer
@@ -62,7 +65,7 @@ def _mujoco_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int
 
     def frames():
         try:
-            for t in range(motion.num_frames):
+            for t in shown:
                 data.qpos[:3] = motion.root_pos[t]
                 data.qpos[3:7] = motion.root_quat[t]
                 data.qpos[qidx] = motion.joint_pos[t]
@@ -89,7 +92,7 @@ def _draw_skeleton(scene, joints: np.ndarray) -> None:
         scene.ngeom += 1
 
 
-def _matplotlib_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int):
+def _matplotlib_frames(motion: Motion, skeleton: np.ndarray, width: int, height: int, shown: range):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -100,7 +103,7 @@ def _matplotlib_frames(motion: Motion, skeleton: np.ndarray, width: int, height:
 
     def frames():
         try:
-            for t in range(motion.num_frames):
+            for t in shown:
                 ax.cla()
                 for child, parent in enumerate(SMPL_PARENTS):
                     if parent >= 0:
