@@ -47,10 +47,10 @@ def train_balance(cfg: BalanceConfig, run_dir: str | Path, *, root: Path = Path(
     train = cfg.train
     _seed(train.seed)
     env = env if env is not None else make_balance_env(cfg, root)
-    net = train.network
-    policy = Stage1Policy(env.spec().actor_obs_dim, env.spec().action_dim, net.actor_hidden, net.activation, net.init_log_std,
+    net, spec = train.network, env.spec()
+    policy = Stage1Policy(spec.actor_obs_dim, spec.action_dim, net.actor_hidden, net.activation, net.init_log_std,
                           adaptive_phase=False, phase_rate=nominal_phase_rate(env), normalize_obs=train.ppo.normalize_obs)
-    critic = DoubleCritic(env.spec().critic_obs_dim, net.critic_hidden, net.activation, train.ppo.normalize_obs)
+    critic = DoubleCritic(spec.critic_obs_dim, net.critic_hidden, net.activation, train.ppo.normalize_obs)
     trainer = Trainer(env, policy, critic, train, run_dir, stage=1, meta=balance_meta(env, cfg), l2c2=False,
                       **trainer_kwargs)
     if cfg.init_from and (not resume or trainer.checkpoints.latest() is None):

@@ -252,14 +252,7 @@ def spread_in_ranges(psi_ranges: dict[str, list], names, per_range: int) -> list
     return out
 
 
-def trace_episode(policy: PolicyRunner, data: TrackingData, psi: float, make_env: Callable,
-                  frame_callback: Callable | None = None) -> EpisodeRecord:
-    """One episode at the sample nearest ψ (one world), optionally rendering each step."""
+def trace_episode(policy: PolicyRunner, data: TrackingData, psi: float, make_env: Callable) -> EpisodeRecord:
+    """One episode at the sample nearest ψ (one world)."""
     env = make_env(nearest_sample_data(data, psi), 1, 0)
-
-    def on_step(env_, info, done):
-        if frame_callback is not None and not done[0]:
-            frame_callback(env_, info)
-
-    records = rollout(env, policy, 1, data.num_keyframes, on_step=on_step)
-    return records[0]
+    return rollout(env, policy, 1, data.num_keyframes)[0]

@@ -44,15 +44,14 @@ def caption_lines(task: str, psi: float, stretch: str, phase: float, seconds: fl
 
 
 def play_to_mp4(policy_dir: str | Path, psi: float, out: str | Path = "play.mp4", seconds: float | None = None,
-                width: int = 1280, height: int = 720, fps: int = 25, task: str | None = None,
-                ghost: bool = True) -> Path:
+                width: int = 1280, height: int = 720, fps: int = 25, task: str | None = None) -> Path:
     """The whole chain when the export has one, else the task alone; the video stops at `seconds` (None: at
     the episode's end). Returns the mp4's path; its frame count is the control steps shown / (control rate / fps)."""
     run, runner = _episode(policy_dir, task)
     control_hz = 1.0 / runner.control_dt
     every = max(1, int(round(control_hz / fps)))
     max_steps = int(seconds * control_hz) if seconds else None
-    reference = ReferencePose.from_metadata(runner.meta) if ghost else None
+    reference = ReferencePose.from_metadata(runner.meta)
     keyframe_phases = np.asarray(runner.keyframe_phases)
     state: dict = {"renderer": None, "writer": None, "phase": 0.0}
 

@@ -1,6 +1,5 @@
 """One offscreen renderer for every picture of the robot: a side camera that follows the pelvis, the styled
-scene (render/style.py), the reference as a ghost (render/ghost.py), keyframe targets as spheres and a
-caption (render/caption.py).
+scene (render/style.py), the reference as a ghost (render/ghost.py) and a caption (render/caption.py).
 
 Rendering runs headless through the GL that importing `pipeline` chose (`MUJOCO_GL`): EGL where libEGL is
 installed (on a machine without a GPU Mesa's llvmpipe serves it: Debian packages libegl1 + libegl-mesa0 +
@@ -19,8 +18,6 @@ import numpy as np
 
 from pipeline.render.style import mark_raised_terrain
 
-MARKER_RGBA_PENDING = np.array([1.0, 0.55, 0.0, 0.85], dtype=np.float32)
-MARKER_RGBA_REACHED = np.array([0.1, 0.8, 0.2, 0.85], dtype=np.float32)
 FOG_START_M, FOG_END_M = 6.0, 12.0
 
 
@@ -65,11 +62,10 @@ class Renderer:
         self._ghost = None
 
     def frame(self, data: mujoco.MjData, *, follow: np.ndarray | None = None, ghosts=(),
-              markers: np.ndarray | None = None, marker_rgba: np.ndarray | None = None, marker_size: float = 0.03,
               caption: list[str] | None = None, decorate=None) -> np.ndarray:
         """RGB frame (H, W, 3) uint8. `follow`: the world point the camera tracks (default: the root);
-        `ghosts`: (qpos, rgba or None) pairs drawn as translucent G1s; `markers` (M, 3) world positions;
-        `decorate(scene)`: draws more geoms into the scene (the retarget preview's person)."""
+        `ghosts`: (qpos, rgba or None) pairs drawn as translucent G1s; `decorate(scene)`: draws more geoms
+        into the scene (the retarget preview's person)."""
         point = data.qpos[0:3] if follow is None else np.asarray(follow)
         self.camera.lookat[:] = [point[0], point[1], self.rig.height]
         # the lights follow the robot (mj_camlight): frames posed by mj_kinematics alone would have them unset
@@ -83,8 +79,6 @@ class Renderer:
 
                 self._ghost = Ghost()
             self._ghost.draw(scene, qpos, rgba)
-        if markers is not None and len(markers):
-            add_markers(scene, markers, marker_rgba, marker_size)
         if decorate is not None:
             decorate(scene)
         rgb = self.renderer.render()
@@ -97,21 +91,3 @@ class Renderer:
     def close(self) -> None:
         self.renderer.close()
 
-
-def add_markers(scene: mujoco.MjvScene, positions: np.ndarray, rgba: np.ndarray | None = None,
-                size: float = 0.04) -> int:
-    """Appends spheres to the scene's user geoms (mjv_initGeom); returns how many fit."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    rgba = np.broadcast_to(MARKER_RGBA_PENDING if rgba is None else np.asarray(rgba, np.float32),
-                           (len(positions), 4))
-    added = 0
-    for pos, color in zip(positions, rgba):
-        if scene.ngeom >= scene.maxgeom:
-            break
-        mujoco.mjv_initGeom(scene.geoms[scene.ngeom], mujoco.mjtGeom.mjGEOM_SPHERE,
-                            np.array([size, 0.0, 0.0]), pos, np.eye(3).reshape(-1),
-                            np.asarray(color, np.float32))
-        scene.geoms[scene.ngeom].category = mujoco.mjtCatBit.mjCAT_DECOR
-        scene.ngeom += 1
-        added += 1
-    return added

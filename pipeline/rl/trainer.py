@@ -485,8 +485,9 @@ def plot_curve(history: list[dict], path: Path, title: str) -> None:
 # ------------------------------------------------------------------------------------------ high level
 def phase_rate_of(env, data) -> float:
     """Δφ per control step: the env's (its spec), else one frame of the motion per step."""
-    if env.spec().phase_rate is not None:
-        return float(env.spec().phase_rate)
+    rate = env.spec().phase_rate
+    if rate is not None:
+        return float(rate)
     motion = data.motion
     return 1.0 / max(motion.num_frames - 1, 1)
 
