@@ -59,7 +59,7 @@ def judge_trace(export_dir: Path, psi: float, report, trace: dict, chain: dict) 
         if fell not in (None, "done"):
             break
     handed_over = bool(report.phases) and report.phases[-1] >= float(chain["handoff_phase"]) - 1e-6 and fell in (None, "done")
-    success = handed_over and judge.success
+    success = handed_over and judge.success_through(float(chain["handoff_phase"]))  # the chain's rule (export/chain.py)
     standing = False
     if handed_over:
         start = after(report.state_ticks[-1])
