@@ -5,8 +5,9 @@ it, and publishes one signed LowCmd: per motor q, dq = 0, kp, kd, tau = 0 for th
 PD. After the damping and the ramp to the default pose, the export's balance policy holds the robot
 (STAND); on the go the task policy runs (POLICY) until its phase reaches the chain's handoff, and the
 balance policy takes the robot back (STAND) until Ctrl-C. Both policies' observations, phase and
-odometry hold come from `PolicyStepper`, the same code `sim2sim` runs; nothing but the export
-(policy.onnx + policy.json, balance/, chain.json) describes them.
+odometry hold come from `PolicyStepper`, the same code `sim2sim` runs, and its joint targets go out
+unchanged, as in training and `sim2sim` (only the ramp's are clamped to the joints' ranges); nothing
+but the export (policy.onnx + policy.json, balance/, chain.json) describes them.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ class DeployReport:
     refused_states: int = 0
     commands_written: int = 0
     last_kp: list[float] = field(default_factory=list)  # gains of the last command written (29 motors)
+    joint_past_limit_rad: float = 0.0  # the furthest any measured joint went past its range
 
     @property
     def exit_code(self) -> int:
@@ -197,6 +199,8 @@ class G1Controller:
                 measured = self._measure(received, time.monotonic())
                 last_tick, last_q = int(received.message.tick), measured.joint_pos
                 mode_machine = int(received.message.mode_machine)
+                self.report.joint_past_limit_rad = max(self.report.joint_past_limit_rad,
+                                                       self.watchdog.past_limit(measured.joint_pos))
                 fault = self.watchdog.fault(measured)
                 if fault is not None:
                     return self._finish("fault", fault, last_q, mode_machine)
@@ -228,15 +232,14 @@ class G1Controller:
                 elif self.mode is Mode.STAND:  # the balance policy, before the go and after the task
                     out = self.balance.step(base_ang_vel=measured.base_ang_vel, projected_gravity=measured.gravity,
                                             joint_pos=measured.joint_pos, joint_vel=measured.joint_vel, psi=0.0)
-                    self._write(clamp_targets(out.joint_targets, self.limits), self.kp, self.kd, mode_machine)
+                    self._write(out.joint_targets, self.kp, self.kd, mode_machine)
                 elif self.mode is Mode.POLICY:
                     odometry = (self.odometry.read() if self.odometry is not None and self.stepper.odometry_due()
                                 else None)
                     out = self.stepper.step(base_ang_vel=measured.base_ang_vel, projected_gravity=measured.gravity,
                                             joint_pos=measured.joint_pos, joint_vel=measured.joint_vel,
                                             psi=self.psi, odometry=odometry)
-                    target = clamp_targets(out.joint_targets, self.limits)
-                    self._write(target, self.kp, self.kd, mode_machine)
+                    self._write(out.joint_targets, self.kp, self.kd, mode_machine)
                     self.report.step_latency_s.append(time.monotonic() - t0)
                     self.report.phases.append(out.phase)
                     self.report.state_ticks.append(last_tick)

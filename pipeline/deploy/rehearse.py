@@ -6,6 +6,11 @@ For each ψ: a bridge process starts the G1 on its virtual gantry (real time, 50
 with the chain's definitions (export/chain.py): the paper's success on the task stretch from the
 tracked sites at each policy step, `standing` at the chain's `after_s` after the handoff with no fall
 check fired before, and `rest_to_rest`. One JSON line per ψ.
+
+The watchdog's joint check runs with `SIM_JOINT_MARGIN_RAD`: MuJoCo's joint limits are soft, and the
+landings the policies trained on press an ankle up to 0.32 rad past its range (sim2sim chains of the
+step down that stand), where a robot's mechanical stop holds it. Each line reports that excursion
+(`joint_past_limit_rad`) so a policy that leans on it is seen before it meets the robot.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ import numpy as np
 from pipeline.deploy.safety import SafetyConfig
 from pipeline.deploy.transport import ODOMETRY_TOPIC
 from pipeline.envs.falls import STANDING
+
+SIM_JOINT_MARGIN_RAD = 0.4
 
 
 def _bridge(export_dir: Path, psi: float, domain: int, trace: Path, gantry_s: float) -> subprocess.Popen:
@@ -73,7 +80,8 @@ def judge_trace(export_dir: Path, psi: float, report, trace: dict, chain: dict) 
             standing = not fallen and STANDING(projected_gravity(qpos[3:7])[:2], height, speed)
     return {"psi": float(psi), "keyframe_errors": [round(e, 4) for e in judge.errors], "success": bool(success),
             "standing": bool(standing), "rest_to_rest": bool(success and standing), "deploy_end": report.end,
-            "deploy_message": report.message, "modes": [mode for _, mode in report.modes],
+            "deploy_message": report.message, "joint_past_limit_rad": round(float(report.joint_past_limit_rad), 3),
+            "modes": [mode for _, mode in report.modes],
             "stood_before_go_s": _stood_before_go(report.modes, float(meta["control_dt"]))}
 
 
@@ -93,7 +101,7 @@ def rehearse(export_dir: str | Path, psi_values, *, safety: SafetyConfig | None 
 
     export_dir = Path(export_dir)
     chain = read_chain(export_dir)  # an export without its balance policy is refused before anything starts
-    safety = safety or SafetyConfig()
+    safety = safety or SafetyConfig(joint_margin_rad=SIM_JOINT_MARGIN_RAD)
     safety = dataclasses.replace(safety, hold_after_s=keep_s)
     results = []
     for psi in psi_values:

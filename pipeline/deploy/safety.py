@@ -68,6 +68,11 @@ class Watchdog:
         self.joint_names = list(joint_names)
         self.cos_max_tilt = float(np.cos(config.max_tilt_rad))
 
+    def past_limit(self, joint_pos: np.ndarray) -> float:
+        """How far (rad) the measured joint furthest outside its range is past it (0 inside)."""
+        margin = self.config.joint_margin_rad
+        return max(0.0, float(np.max(np.maximum(self.lower + margin - joint_pos, joint_pos - self.upper + margin))))
+
     def fault(self, measured: Measured) -> str | None:
         """The reason to fall back to damping now, or None."""
         if measured.age_s > self.config.state_timeout_s:
@@ -92,4 +97,7 @@ def ramp_targets(start: np.ndarray, goal: np.ndarray, elapsed_s: float, duration
 
 
 def clamp_targets(targets: np.ndarray, joint_limits: np.ndarray) -> np.ndarray:
+    """The ramp's targets inside the joints' ranges. The policies' targets are sent as they trained:
+    they press past a range (a landing's ankles, by up to 2.8 rad of target) for the torque that
+    holds the joint at its stop; clamped, the same policy falls (measured on the bridge)."""
     return np.clip(targets, joint_limits[:, 0], joint_limits[:, 1])
