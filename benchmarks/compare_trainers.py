@@ -69,7 +69,7 @@ def main() -> None:
 
     from pipeline.envs.config import EnvConfig
     from pipeline.rl.config import TrainConfig
-    from pipeline.rl.trainer import train_stage1
+    from pipeline.rl.training import train_stage1
 
     task = learn_cpu.paper_task(args.motion)
     if args.input is not None:

@@ -55,7 +55,8 @@ sys.path.insert(0, str(ROOT))
 
 def paper_task(motion_name: str):
     """The paper task named `motion_name` (pipeline/keyframes/paper_tasks.yaml), or exit naming the choices."""
-    from pipeline.keyframes.config import load_tasks, load_yaml_strict
+    from pipeline.common.yaml_strict import load_yaml_strict
+    from pipeline.keyframes.task_parsing import load_tasks
 
     tasks = load_tasks(load_yaml_strict(ROOT / "pipeline" / "keyframes" / "paper_tasks.yaml")["tasks"])
     if motion_name not in tasks:
@@ -362,7 +363,7 @@ def main() -> None:
         stage1_policy = out / "policy"
         ev, minutes = train_and_report_stage1(args, data, env_cfg, cfg, out)
     if args.stage2_minutes > 0:
-        from pipeline.rl.trainer import train_stage2
+        from pipeline.rl.training import train_stage2
 
         stage2_cfg = TrainConfig.from_dict({**overrides["train"], "variant": "adamimic", "iterations_stage2": 0,
                                             "time_limit_stage2_s": args.stage2_minutes * 60.0})
@@ -378,7 +379,7 @@ def train_and_report_stage1(args, data, env_cfg, cfg, out: Path):
     """Stage 1 with its training curve printed, then its evaluation from t = 0. Returns (evaluation, minutes)."""
     import json
 
-    from pipeline.rl.trainer import train_stage1
+    from pipeline.rl.training import train_stage1
 
     t1 = time.time()
     metrics = train_stage1(data, env_cfg, cfg, out, tensorboard=False, progress=False, log=print)

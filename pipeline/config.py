@@ -52,7 +52,7 @@ def _section(raw: dict, key: str, path: Path) -> dict:
 
 def paper_tasks() -> dict:
     """The seven tasks of the paper (inputs, keyframe labels, edits, psi ranges, terrain)."""
-    from pipeline.keyframes.config import load_yaml_strict
+    from pipeline.common.yaml_strict import load_yaml_strict
 
     return load_yaml_strict(PAPER_TASKS)["tasks"]
 
@@ -91,7 +91,8 @@ def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
     from pipeline.balance.config import BalanceConfig
     from pipeline.envs.config import EnvConfig
     from pipeline.evaluation.config import EvalConfig
-    from pipeline.keyframes.config import load_tasks, load_yaml_strict
+    from pipeline.common.yaml_strict import load_yaml_strict
+    from pipeline.keyframes.task_parsing import load_tasks
     from pipeline.retarget.config import RetargetConfig
     from pipeline.rl.config import TrainConfig, get_variant
 

@@ -120,7 +120,7 @@ def _finish_training(metrics: dict) -> None:
 
 def run_train_stage1(params: PipelineConfig, args) -> None:
     """Stage 1: sparse keyframe tracking (or the variant's dense baseline) with `train.algorithm`."""
-    from pipeline.rl.trainer import train_stage1
+    from pipeline.rl.training import train_stage1
 
     data = _tracking_data(params, args.task, args.variant)
     run_dir = paths.model_dir(args.task, args.variant) / "stage1"
@@ -137,7 +137,7 @@ def run_train_stage2(params: PipelineConfig, args) -> None:
 
 def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resume: bool = False) -> dict:
     """Stage 2 on `model_dir`/stage1/policy into `model_dir`/final."""
-    from pipeline.rl.trainer import train_stage2
+    from pipeline.rl.training import train_stage2
 
     final = model_dir / "final"
     if cfg.variant_spec.stage2:
@@ -164,7 +164,7 @@ def _extra_seed(params: PipelineConfig, args) -> int:
 def run_train_seed(params: PipelineConfig, args) -> None:
     """Stage 1 and stage 2 again with another training seed (one of `extra_seeds`), everything else as
     the main run: the report's spread over seeds."""
-    from pipeline.rl.trainer import train_stage1
+    from pipeline.rl.training import train_stage1
 
     seed = _extra_seed(params, args)
     cfg = dataclasses.replace(_train_config(params, args.variant), seed=seed)

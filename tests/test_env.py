@@ -512,7 +512,7 @@ def test_own_state_starts_restart_where_the_policy_was(data):
 
     assert evaluation_env_config(cfg, EvalConfig()).own_state_starts.prob == 0.0  # evaluation starts at t = 0
     from pipeline.rl.config import get_variant
-    from pipeline.rl.trainer import env_config_for
+    from pipeline.rl.training import env_config_for
 
     assert env_config_for(cfg, get_variant("adamimic"), stage=2).own_state_starts.prob == 0.0  # so does stage 2
 
@@ -730,7 +730,7 @@ def test_feedforward_holds_the_reference_where_the_bare_reference_sags(data):
 
 def test_psi_scale_samples_pins_the_psi_input_at_the_samples_spread(data):
     from pipeline.rl.networks import EmpiricalNormalizer
-    from pipeline.rl.trainer import pin_observation_stats
+    from pipeline.rl.training import pin_observation_stats
 
     running = TrackingEnv(quiet_cfg(observations={"psi_scale": "running"}), data, num_envs=N)
     assert running.pinned_observation_stats() == []

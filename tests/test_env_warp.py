@@ -26,7 +26,8 @@ pytest.importorskip("mujoco_warp")
 import pipeline.sim.backend as backend_module  # noqa: E402
 from pipeline.envs.config import EnvConfig  # noqa: E402
 from pipeline.envs.tracking_env import TrackingEnv  # noqa: E402
-from pipeline.keyframes.config import load_tasks, load_yaml_strict  # noqa: E402
+from pipeline.common.yaml_strict import load_yaml_strict  # noqa: E402
+from pipeline.keyframes.task_parsing import load_tasks  # noqa: E402
 from pipeline.keyframes.edit import build_tracking_data  # noqa: E402
 from pipeline.keyframes.select import select_keyframes  # noqa: E402
 from pipeline.keyframes.synthetic import Flight, synthetic_jump_motion  # noqa: E402
@@ -130,7 +131,7 @@ def test_gpu_profile_trains_both_stages_on_the_warp_backend(far_jump, warp_allow
     frozen stage 1), shrunk: on CPU, the one run of it that needs no GPU; on a GPU, as trained there."""
     from pipeline.rl.checkpoint import load_policy
     from pipeline.rl.config import TrainConfig
-    from pipeline.rl.trainer import train_stage1, train_stage2
+    from pipeline.rl.training import train_stage1, train_stage2
 
     cfg = TrainConfig.from_dict({"profile": "gpu", "device": device, "iterations_stage1": 2, "iterations_stage2": 1,
                                  "ppo": {"num_envs": N, "steps_per_iteration": 6, "minibatches": 2}})

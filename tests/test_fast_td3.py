@@ -20,7 +20,8 @@ from pipeline.rl.config import TrainConfig
 from pipeline.rl.fast_td3 import build_fast_td3_trainer
 from pipeline.rl.mirror import Mirror, joint_mirror, qpos_mirror
 from pipeline.rl.replay_buffer import ReplayBuffer
-from pipeline.rl.trainer import Trainer, train, train_stage2
+from pipeline.rl.trainer import Trainer
+from pipeline.rl.training import train, train_stage2
 from test_rl import META, ToyKeyframeEnv, evaluate, make_stage1, small_cfg
 
 torch.set_num_threads(1)

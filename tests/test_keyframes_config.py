@@ -5,7 +5,9 @@ from pathlib import Path
 import pytest
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.keyframes.config import TaskConfig, label_matches, load_tasks, load_yaml_strict, merge_ranges
+from pipeline.common.yaml_strict import load_yaml_strict
+from pipeline.keyframes.config import TaskConfig, label_matches
+from pipeline.keyframes.task_parsing import load_tasks, merge_ranges
 from pipeline.keyframes.select import select_keyframes
 from pipeline.keyframes.synthetic import Flight, synthetic_jump_motion
 

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.keyframes.config import TaskConfig, load_tasks, load_yaml_strict
+from pipeline.common.yaml_strict import load_yaml_strict
+from pipeline.keyframes.config import TaskConfig
+from pipeline.keyframes.task_parsing import load_tasks
 from pipeline.keyframes.edit import build_tracking_data
 from pipeline.keyframes.select import select_keyframes
 from pipeline.motion.feet import foot_height_and_speed, sole_points_world

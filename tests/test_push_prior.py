@@ -312,7 +312,9 @@ def test_the_far_jumps_prior_measures_its_jumps_where_the_env_lands_them():
     the env replays exactly one of the search's measured rollouts (w held constant, on flat ground) and
     its landing must be the ψ the prior recorded for it."""
     from pipeline.human.importers import load_human_motion
-    from pipeline.keyframes.config import TerrainConfig, load_tasks, load_yaml_strict
+    from pipeline.common.yaml_strict import load_yaml_strict
+    from pipeline.keyframes.config import TerrainConfig
+    from pipeline.keyframes.task_parsing import load_tasks
     from pipeline.keyframes.edit import build_tracking_data
     from pipeline.keyframes.select import select_keyframes
     from pipeline.retarget import RetargetConfig, retarget

@@ -186,7 +186,7 @@ def yaml_problem(block: str) -> str | None:
     from pipeline.config import TOP_LEVEL_KEYS, resolve_task_templates
     from pipeline.envs.config import EnvConfig
     from pipeline.evaluation.config import EvalConfig
-    from pipeline.keyframes.config import load_tasks
+    from pipeline.keyframes.task_parsing import load_tasks
     from pipeline.retarget.config import RetargetConfig
     from pipeline.rl.config import TrainConfig
 

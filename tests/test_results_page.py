@@ -8,14 +8,8 @@ import numpy as np
 import pytest
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.evaluation.results_page import (
-    GIF_WIDTH,
-    MAX_GIF_BYTES,
-    MAX_IMAGE_BYTES,
-    PAPER_TITLE,
-    main,
-    write_results_page,
-)
+from pipeline.evaluation.page_images import GIF_WIDTH, MAX_GIF_BYTES, MAX_IMAGE_BYTES
+from pipeline.evaluation.results_page import PAPER_TITLE, main, write_results_page
 
 
 def _stat(mean, std=0.0):

@@ -169,7 +169,7 @@ def test_froude_time_scale_flies_under_gravity(retargeted_sample):
 
 
 def test_flight_gravity_fits_the_flight_only():
-    from pipeline.retarget.core import flight_gravity, jump_summary
+    from pipeline.retarget.quality import flight_gravity, jump_summary
 
     fps, frames = 50.0, 60
     t = np.arange(frames) / fps

@@ -21,7 +21,8 @@ from pipeline.rl.config import VARIANTS, TrainConfig
 from pipeline.rl.networks import DoubleCritic, EmpiricalNormalizer, Stage1Policy
 from pipeline.rl.ppo import gae
 from pipeline.rl.stage2 import Stage2Policy
-from pipeline.rl.trainer import Trainer, train_stage2
+from pipeline.rl.trainer import Trainer
+from pipeline.rl.training import train_stage2
 
 torch.set_num_threads(1)
 
@@ -498,7 +499,7 @@ def test_actor_gradient_is_not_scaled_by_the_critics(tmp_path):
 def test_episode_stats_record_each_finished_episode():
     """Three worlds over three steps: one falls, one times out, one times out after missing a keyframe
     by more than 1 m (a failure without a termination). The figures reach the window once, in order."""
-    from pipeline.rl.trainer import EpisodeStats
+    from pipeline.rl.episode_stats import EpisodeStats
 
     stats = EpisodeStats(3, "cpu", window=3)
     no = torch.zeros(3, dtype=torch.bool)

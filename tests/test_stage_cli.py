@@ -16,7 +16,7 @@ def trainer_calls(monkeypatch):
         calls.append(kwargs)
         return answers.pop(0)
 
-    import pipeline.rl.trainer as trainer
+    import pipeline.rl.training as trainer
 
     monkeypatch.setattr(trainer, "train_stage1", fake_train_stage1)
     monkeypatch.setattr(stages, "_tracking_data", lambda params, task, variant: None)

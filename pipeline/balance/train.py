@@ -14,7 +14,8 @@ from pipeline.balance.config import BalanceConfig
 from pipeline.balance.starts import load_start_states
 from pipeline.envs.balance_env import BalanceEnv
 from pipeline.rl.networks import DoubleCritic, Stage1Policy
-from pipeline.rl.trainer import Trainer, _seed, policy_meta
+from pipeline.rl.trainer import Trainer
+from pipeline.rl.training import policy_meta, seed_everything
 
 TASK = "balance"
 
@@ -45,7 +46,7 @@ def train_balance(cfg: BalanceConfig, run_dir: str | Path, *, root: Path = Path(
                   chunk_s: float | None = None, env: BalanceEnv | None = None, **trainer_kwargs) -> dict:
     """PPO on the balance env; the policy goes to run_dir/policy (config.json + model.safetensors)."""
     train = cfg.train
-    _seed(train.seed)
+    seed_everything(train.seed)
     env = env if env is not None else make_balance_env(cfg, root)
     net, spec = train.network, env.spec()
     policy = Stage1Policy(spec.actor_obs_dim, spec.action_dim, net.actor_hidden, net.activation, net.init_log_std,

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 
 from pipeline.common.errors import PipelineInputError
 from pipeline.common.typed_config import replace_from_mapping
-from pipeline.envs.config import PenaltyConfig, PenaltyWeights, PushConfig, RandomizationConfig
+from pipeline.envs.config import PushConfig, RandomizationConfig
+from pipeline.envs.reward_config import PenaltyConfig, PenaltyWeights
 
 
 @dataclass

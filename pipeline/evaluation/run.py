@@ -17,8 +17,6 @@ import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.common.atomic import atomic_dir
 from pipeline.common.errors import PipelineInputError
 from pipeline.evaluation.config import EvalConfig

@@ -166,14 +166,17 @@ def serve(path: str | Path, host: str = "127.0.0.1", port: int = 8080, log=print
         raise PipelineInputError(path, None, "nothing to view here (an export folder, data/retargeted/<task> or a "
                                  "keyframes dataset)")
     server = _server(host, port)
-    if (path / "policy.json").is_file():
-        viewer = view_export(path, server)
-    elif (path / "motion").is_dir() or path.name == "motion":
-        viewer = view_motion(path, server)
-    elif _is_keyframes_dataset(path):
-        viewer = view_keyframes(path, server)
-    else:
+    try:
+        if (path / "policy.json").is_file():
+            viewer = view_export(path, server)
+        elif (path / "motion").is_dir() or path.name == "motion":
+            viewer = view_motion(path, server)
+        elif _is_keyframes_dataset(path):
+            viewer = view_keyframes(path, server)
+        else:
+            raise PipelineInputError(path, None, "not an export folder, a retargeted task or a keyframes dataset")
+    except BaseException:  # a bad path, or Ctrl-C while the scene builds: viser's threads would outlive us
         server.stop()
-        raise PipelineInputError(path, None, "not an export folder, a retargeted task or a keyframes dataset")
+        raise
     log(f"adamimic view: serving {path} at http://{host}:{server.get_port()} (Ctrl-C stops)")
     viewer.run()

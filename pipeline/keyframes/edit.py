@@ -27,7 +27,8 @@ from dataclasses import replace
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.keyframes.config import CUMULATIVE_MODES, TaskConfig, merge_ranges
+from pipeline.keyframes.config import CUMULATIVE_MODES, TaskConfig
+from pipeline.keyframes.task_parsing import merge_ranges
 from pipeline.keyframes.select import KeyframeTable
 from pipeline.keyframes.tracking_data import TrackingData
 from pipeline.motion.motion import Motion

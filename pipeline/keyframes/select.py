@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.keyframes.config import DEFAULT_EDITED, KeyframeSpec, TaskConfig, _selector_hits
+from pipeline.keyframes.config import DEFAULT_EDITED, KeyframeSpec, TaskConfig
+from pipeline.keyframes.task_parsing import selector_hits
 from pipeline.motion.feet import detect_foot_contacts, find_flights
 from pipeline.motion.motion import Motion
 
@@ -166,7 +167,7 @@ def select_keyframes(motion: Motion, task: TaskConfig) -> KeyframeTable:
     def mask(selectors, field_name: str) -> np.ndarray:
         m = np.zeros(len(frames), bool)
         for sel in selectors:
-            hits = np.array([_selector_hits(sel, t, lab, tol=half_frame) for t, lab in zip(times, labels)])
+            hits = np.array([selector_hits(sel, t, lab, tol=half_frame) for t, lab in zip(times, labels)])
             if not hits.any():
                 found = sorted({lab for lab in labels if lab})
                 raise PipelineInputError(src, field_name,

@@ -215,7 +215,6 @@ def synthetic_hop_step_jump(supports: list[Support] | None = None, noise: Estima
     n = len(t)
     local, radius = _sole_points()
     sole_length = float(local[0][:, 0].max() - local[0][:, 0].min())
-    heel_to_ankle = float(-local[0][:, 0].min())
     slope_pitch = -float(np.arctan(noise.slope))
     rng = np.random.default_rng(noise.seed)
 

@@ -22,8 +22,8 @@ from pipeline.motion.motion import Motion, RobotKinematics
 from pipeline.retarget import contacts as contact_ops
 from pipeline.retarget.config import RetargetConfig
 from pipeline.retarget.ik import make_retargeter
-from pipeline.retarget.quality import (GeomHeights, balance_report, flight_gravity, flights_report, foot_skate,  # noqa: F401
-                                       joint_report, jump_summary, keypoint_error, torque_report)
+from pipeline.retarget.quality import (GeomHeights, balance_report, flights_report, foot_skate, joint_report,
+                                       keypoint_error, torque_report)
 from pipeline.retarget.skeleton import RobotGeometry, body_scale, transfer_skeleton
 from pipeline.robot.g1 import build_model, joint_limits, load_robot_config
 

@@ -43,7 +43,8 @@ from pipeline.rl.config import FastTD3Config, TrainConfig
 from pipeline.rl.mirror import Mirror, mirror_for_env
 from pipeline.rl.networks import EmpiricalNormalizer, Stage1Policy, mlp
 from pipeline.rl.replay_buffer import GROUPS, ReplayBuffer
-from pipeline.rl.trainer import Trainer, pin_observation_stats, policy_meta
+from pipeline.rl.trainer import Trainer
+from pipeline.rl.training import pin_observation_stats, policy_meta
 
 
 # ------------------------------------------------------------------------------------------ critics
