@@ -2,10 +2,12 @@
 
 A chain hands the robot to the balance policy where the task policy leaves it: after a landing,
 moving and leaning. `record_end_states` rolls each exported task policy out in sim2sim over its ψ
-range and keeps the states from its last landing keyframe to the end of its phase (every few steps),
-moved onto flat ground (the balance env has no terrain): the pelvis keeps its height above the
-ground under it. States already past the balance env's fall checks are left out: no policy starts
-there.
+range and keeps the states from its last landing keyframe to the end of its phase (every few steps);
+`--at-handoff` instead runs each export's whole chain (`ChainRunner`, from the stance at rest) and keeps
+the state the balance policy is handed, nominal and under the paper's randomisation: a task's own
+catches, for a balance policy fine-tuned on them. Every state is moved onto flat ground (the balance
+env has no terrain): the pelvis keeps its height above the ground under it. States already past the
+balance env's fall checks are left out: no policy starts there.
 
     python -m pipeline.balance.starts models/pretrained/far_jump/export models/pretrained/jump_step_down/export \
         --out data/balance/start_states.npz
@@ -45,12 +47,9 @@ def record_end_states(export_dir: str | Path, psi_values, *, every: int = 3, max
             final = info["phase"] >= 1.0 - 1e-6
             if info["phase"] < start or (info["step"] % every and not final):
                 return
-            qpos = data.qpos.copy()
-            qpos[2] -= ground_height_under(model, qpos[0], qpos[1])
-            by_tilt, by_height = fall_flags(projected_gravity(qpos[3:7])[:2], qpos[2], max_tilt, min_height)
-            if by_tilt or by_height:
+            qpos = _on_flat_ground(model, data.qpos, max_tilt, min_height)  # the balance env's worlds: the origin
+            if qpos is None:
                 return
-            qpos[0:2] = 0.0  # the balance env's worlds stand at the origin
             rows["qpos"].append(qpos)
             rows["qvel"].append(data.qvel.copy())
             rows["psi"].append(psi)
@@ -62,7 +61,56 @@ def record_end_states(export_dir: str | Path, psi_values, *, every: int = 3, max
     return {k: np.asarray(v) for k, v in rows.items()}
 
 
-def write_start_states(path: str | Path, exports: list[Path], episodes: int = 16) -> dict:
+def _on_flat_ground(model, qpos: np.ndarray, max_tilt: float, min_height: float) -> np.ndarray | None:
+    """`qpos` at the origin of flat ground, the pelvis as high above it as it was; None past a fall check."""
+    qpos = qpos.copy()
+    qpos[2] -= ground_height_under(model, qpos[0], qpos[1])
+    by_tilt, by_height = fall_flags(projected_gravity(qpos[3:7])[:2], qpos[2], max_tilt, min_height)
+    if by_tilt or by_height:
+        return None
+    qpos[0:2] = 0.0
+    return qpos
+
+
+def record_handoff_states(export_dir: str | Path, psi_values, *, randomized_per_psi: int = 3, seed: int = 0,
+                          max_tilt: float = 0.8, min_height: float = 0.4) -> dict:
+    """{"qpos", "qvel", "psi", "phase"} where the chain hands the robot to the balance policy: once per ψ on
+    the nominal model and `randomized_per_psi` times under the paper's randomisation, on flat ground."""
+    import torch
+
+    from pipeline.envs.config import RandomizationConfig
+    from pipeline.evaluation.chain_eval import model_randomizer
+    from pipeline.export.chain import ChainRunner
+
+    runner = ChainRunner(export_dir)
+    randomization = RandomizationConfig()
+    randomization.enabled = True
+    randomize = model_randomizer(randomization)
+    torch.manual_seed(seed)
+    rows = {"qpos": [], "qvel": [], "psi": [], "phase": []}
+    for psi in psi_values:
+        for draw in range(1 + randomized_per_psi):
+            last = {}
+
+            def keep(model, data, info):
+                if info["stretch"] == "task":
+                    last.update(model=model, qpos=data.qpos.copy(), qvel=data.qvel.copy(), phase=info["phase"])
+
+            result = runner.run(float(psi), on_step=keep, randomize=randomize if draw else None)
+            if result.ended_in != "balance" or not last:  # fell in the task: nothing was handed over
+                continue
+            qpos = _on_flat_ground(last["model"], last["qpos"], max_tilt, min_height)
+            if qpos is not None:
+                rows["qpos"].append(qpos)
+                rows["qvel"].append(last["qvel"])
+                rows["psi"].append(float(psi))
+                rows["phase"].append(float(last["phase"]))
+    if not rows["qpos"]:
+        raise PipelineInputError(export_dir, None, "no chain of this export reached its handoff")
+    return {k: np.asarray(v) for k, v in rows.items()}
+
+
+def write_start_states(path: str | Path, exports: list[Path], episodes: int = 16, at_handoff: bool = False) -> dict:
     """Records every export's end states over an even ψ grid of its range and writes one npz."""
     import json
 
@@ -70,7 +118,8 @@ def write_start_states(path: str | Path, exports: list[Path], episodes: int = 16
     for export in exports:
         meta = json.loads((Path(export) / "policy.json").read_text())
         lo, hi = meta["psi_limits"]
-        parts.append(record_end_states(export, np.linspace(lo, hi, episodes)))
+        record = record_handoff_states if at_handoff else record_end_states
+        parts.append(record(export, np.linspace(lo, hi, episodes)))
     states = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     states["source"] = np.array([str(e) for e in exports])
     states["count_per_source"] = np.array([len(p["qpos"]) for p in parts])
@@ -95,8 +144,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("exports", type=Path, nargs="+", help="exported task policy folders")
     parser.add_argument("--out", type=Path, default=Path("data/balance/start_states.npz"))
     parser.add_argument("--episodes", type=int, default=16, help="ψ values per export, evenly over its range")
+    parser.add_argument("--at-handoff", action="store_true",
+                        help="the states each export's chain hands over, nominal and randomised (module docstring)")
     args = parser.parse_args(argv)
-    states = write_start_states(args.out, args.exports, args.episodes)
+    states = write_start_states(args.out, args.exports, args.episodes, at_handoff=args.at_handoff)
     print(f"{args.out}: {len(states['qpos'])} states ({', '.join(map(str, states['count_per_source']))} per export)")
 
 
