@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from pipeline.envs.config import RandomizationConfig  # noqa: E402
 from pipeline.evaluation.chain_eval import evaluate_chain  # noqa: E402
 from pipeline.export.chain import ChainRunner, read_chain  # noqa: E402
+from pipeline.export.policy_step import yaw_of  # noqa: E402
 from pipeline.export.sim2sim import PsiOutOfRangeWarning  # noqa: E402
 
 
@@ -46,8 +47,7 @@ def yaw_at_go(export: Path, psi: float) -> float:
 
     def on_step(model, data, info):
         if info["stretch"] == "task" and not seen:
-            w, x, y, z = data.qpos[3:7]
-            seen.append(float(np.degrees(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))))
+            seen.append(float(np.degrees(yaw_of(data.qpos[3:7]))))
 
     ChainRunner(export).run(psi, on_step=on_step)
     return seen[0] if seen else float("nan")

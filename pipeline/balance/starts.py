@@ -83,9 +83,7 @@ def record_handoff_states(export_dir: str | Path, psi_values, *, randomized_per_
     from pipeline.export.chain import ChainRunner
 
     runner = ChainRunner(export_dir)
-    randomization = RandomizationConfig()
-    randomization.enabled = True
-    randomize = model_randomizer(randomization)
+    randomize = model_randomizer(RandomizationConfig())
     torch.manual_seed(seed)
     rows = {"qpos": [], "qvel": [], "psi": [], "phase": []}
     for psi in psi_values:

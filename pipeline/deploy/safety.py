@@ -63,15 +63,15 @@ class Measured:
 class Watchdog:
     def __init__(self, config: SafetyConfig, joint_limits: np.ndarray, joint_names):
         self.config = config
-        self.lower = np.asarray(joint_limits)[:, 0] - config.joint_margin_rad
-        self.upper = np.asarray(joint_limits)[:, 1] + config.joint_margin_rad
+        self.limits = np.asarray(joint_limits)
+        self.lower = self.limits[:, 0] - config.joint_margin_rad
+        self.upper = self.limits[:, 1] + config.joint_margin_rad
         self.joint_names = list(joint_names)
         self.cos_max_tilt = float(np.cos(config.max_tilt_rad))
 
     def past_limit(self, joint_pos: np.ndarray) -> float:
         """How far (rad) the measured joint furthest outside its range is past it (0 inside)."""
-        margin = self.config.joint_margin_rad
-        return max(0.0, float(np.max(np.maximum(self.lower + margin - joint_pos, joint_pos - self.upper + margin))))
+        return max(0.0, float(np.max(np.maximum(self.limits[:, 0] - joint_pos, joint_pos - self.limits[:, 1]))))
 
     def fault(self, measured: Measured) -> str | None:
         """The reason to fall back to damping now, or None."""

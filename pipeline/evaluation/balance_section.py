@@ -40,7 +40,8 @@ def balance_section(root: Path, page: Path, folder: Path, doc: dict, in_use: boo
     (params.yaml `balance.out`)."""
     source = folder / "metrics.json"
     role = ("Every chain the pipeline exports stands with it before the go and after the task" if in_use else
-            "A committed balance policy the chains no longer use (params.yaml `balance.out` names the one they do)")
+            "A committed balance policy the pipeline's exports do not hand over to (params.yaml `balance.out` names "
+            "the one they do; a committed task policy's own export may name this one)")
     out = [f"## The balance policy `{folder.name}`", "",
            f"{role} (`models/pretrained/{folder.name}`). "
            f"From [`{source.relative_to(root).as_posix()}`]({_link(source, page.parent)}).", "",

@@ -33,7 +33,11 @@ class _OneModel:
 
 
 def model_randomizer(cfg: RandomizationConfig):
-    """randomize(model) -> control delay (s): one draw of the table into `model` (torch's RNG seeds it)."""
+    """randomize(model) -> control delay (s): one draw of `cfg`'s table, switched on whatever its `enabled`
+    says, into `model` (torch's RNG seeds it)."""
+    cfg = copy.deepcopy(cfg)
+    cfg.enabled = True
+
     def randomize(model) -> float:
         return float(DomainRandomizer(cfg, model, _OneModel(model)).apply(np.array([0]))[0])
 
@@ -45,11 +49,7 @@ def evaluate_chain(export_dir: str | Path, psi_ranges: dict, episodes_per_range:
     """{"ranges": {name: {rate: {"mean": %}, "episodes": n}}, "endings": {...}, "episodes": [...]}; the
     overall range pools every episode."""
     runner = ChainRunner(export_dir)
-    randomize = None
-    if randomization is not None:
-        cfg = copy.deepcopy(randomization)
-        cfg.enabled = True
-        randomize = model_randomizer(cfg)
+    randomize = model_randomizer(randomization) if randomization is not None else None
     torch.manual_seed(seed)
     episodes = []
     for name, psi in spread_in_ranges(psi_ranges, list(psi_ranges), episodes_per_range):
