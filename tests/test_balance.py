@@ -138,7 +138,7 @@ def test_trains_exports_and_measures_a_tiny_run(tmp_path):
 
 def test_a_fine_tune_starts_from_the_named_run_and_counts_its_own_iterations(tmp_path):
     """`balance.init_from` names a run folder: the fine-tune starts from its latest checkpoint and counts its own
-    iterations (tests/test_rl.py checks the weights it starts from); a folder without a checkpoint is refused."""
+    iterations (tests/test_rl_checkpoints.py checks the weights it starts from); a folder without a checkpoint is refused."""
     from pipeline.balance.config import BalanceConfig
     from pipeline.balance.train import train_balance
 

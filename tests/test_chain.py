@@ -208,3 +208,14 @@ def test_a_task_declares_its_handoff_after_its_last_landing():
     assert task.clip.handoff_after_landing_s == 0.1 and TaskConfig.from_dict("hop", far).clip.handoff_after_landing_s is None
     with pytest.raises(PipelineInputError, match="clip.handoff_after_landing_s"):
         TaskConfig.from_dict("hop", {**far, "clip": {"handoff_after_landing_s": -1}})
+
+
+def test_chain_eval_refuses_a_folder_without_its_export_or_metrics(chain_export, tmp_path, capsys):
+    """`python -m pipeline.evaluation.chain_eval FOLDER`: one line naming the missing file, exit 2, nothing written."""
+    from pipeline.evaluation.chain_eval import main
+
+    folder = tmp_path / "policy"
+    shutil.copytree(chain_export, folder / "export")
+    assert main([str(folder)]) == 2
+    assert f"{folder / 'metrics.json'}: missing" in capsys.readouterr().err
+    assert sorted(p.name for p in folder.iterdir()) == ["export"]

@@ -1,5 +1,5 @@
-"""G1 deployment: CRC and message checks, the safety modes and watchdog, and the controller against
-the MuJoCo sim bridge over DDS on the loopback interface (a random domain per test).
+"""G1 deployment: CRC and message checks, the safety modes and watchdog, and the controller
+against a fake robot, the go key and the odometry topic (tests/test_deploy_bridge.py runs it over DDS).
 
 Proven together: unitree-sdk2 1.0.1 (its unitree_hg types) with cyclonedds 11.0.1 (PROVEN below).
 """
@@ -7,15 +7,9 @@ Proven together: unitree-sdk2 1.0.1 (its unitree_hg types) with cyclonedds 11.0.
 import json
 import os
 import platform
-import random
 import shutil
-import signal
-import subprocess
-import sys
-import threading
 import time
 from importlib.metadata import version
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,48 +19,9 @@ from pipeline.deploy.controller import G1Controller
 from pipeline.deploy.crc import low_cmd_crc, low_state_crc
 from pipeline.deploy.motors import G1_MOTOR_NAMES, NUM_MOTORS, MotorMap
 from pipeline.deploy.safety import Measured, SafetyConfig, Watchdog
-from pipeline.deploy.transport import Received, check_low_state, sdk_types
+from pipeline.deploy.transport import check_low_state
 
-PROVEN = {"unitree-sdk2": "1.0.1", "cyclonedds": "11.0.1"}
-SDK = sdk_types()
-QUICK = SafetyConfig(damping_s=0.04, ramp_s=0.1, stand_s=0.04, hold_after_s=0.04)
-REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def export(tmp_path_factory):
-    """A far-jump export with its chain, stand-in networks and the real metadata contract (tests/test_chain.py)."""
-    from test_chain import chained_export, standin_task_export
-
-    root = tmp_path_factory.mktemp("deploy")
-    return chained_export(standin_task_export(root / "task"), root / "export")
-
-
-@pytest.fixture(scope="module")
-def standing_export(tmp_path_factory):
-    """The stand-in task with the committed balance policy the chains use (models/pretrained/balance_landing):
-    a chain that stands before the go and after the task, for the runs on the bridge."""
-    from test_chain import chained_export, standin_task_export
-
-    root = tmp_path_factory.mktemp("standing")
-    return chained_export(standin_task_export(root / "task"), root / "export",
-                          balance=REPO / "models" / "pretrained" / "balance_landing" / "export")
-
-
-def _stance29(export, motors):
-    """The balance policy's joint targets at a zero action (the stand-in's), on the 29 motors."""
-    stance = json.loads((export / "balance" / "policy.json").read_text())["stance"]["joint_target"]
-    return motors.to_motors(np.asarray(stance), 0.0)
-
-
-def _commands_in(report, robot, mode):
-    """The commands written while the controller was in `mode` (one command per tick)."""
-    spans = list(zip(report.modes, report.modes[1:] + [(len(robot.commands), None)]))
-    return [c for (start, name), (stop, _) in spans if name == mode for c in robot.commands[start:stop]]
-
-
-def _domain() -> int:
-    return random.randint(1, 230)
+from deploy_helpers import PROVEN, QUICK, SDK, FakeRobot, _commands_in, _domain, _stance29, _stop_after, _wait, export, standing_export  # noqa: F401  (export, standing_export: module fixtures)
 
 
 # ------------------------------------------------------------------------------ versions, CRC, messages
@@ -134,13 +89,6 @@ def test_bad_crc_and_wrong_motor_count_over_dds():
         writer.write(short)
 
 
-def _wait(condition, timeout=5.0):
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.005)
-
-
 # ------------------------------------------------------------------------------ motors and safety
 def test_motor_map_puts_27_joints_on_29_motors(export):
     meta = json.loads((export / "policy.json").read_text())
@@ -174,47 +122,10 @@ def test_watchdog_reasons():
         SafetyConfig(state_timeout_s=0)
 
 
-class FakeRobot:
-    """A LowState source that holds its pose (or follows the commanded q) and records every command."""
-
-    def __init__(self, meta, follow=False, quat=(1.0, 0.0, 0.0, 0.0)):
-        self.motors = MotorMap.from_joint_names(meta["joint_names"])
-        self.state = SDK.new_low_state()
-        self.state.imu_state.quaternion = list(quat)
-        self.set_q(np.asarray(meta["default_joint_pos"]) + 0.05)  # not at the default pose
-        self.follow, self.silent, self.refused = follow, False, 0
-        self.commands: list[dict] = []
-        self.latest = None
-
-    def set_q(self, q_joint):
-        for i, q in enumerate(self.motors.to_motors(q_joint, 0.0)):
-            self.state.motor_state[i].q = float(q)
-
-    def poll(self):
-        if not self.silent:
-            self.state.tick += 20
-            self.latest = Received(self.state, time.monotonic())
-        return self.latest
-
-    def write(self, cmd):
-        assert low_cmd_crc(cmd) == cmd.crc
-        motors = cmd.motor_cmd[:NUM_MOTORS]
-        self.commands.append({k: np.array([getattr(m, k) for m in motors]) for k in ("q", "kp", "kd", "mode")})
-        if self.follow and cmd.motor_cmd[0].kp > 0:
-            self.set_q(self.motors.from_motors(self.commands[-1]["q"]))
-
-
 def _controller(export, robot, **kw):
     kw.setdefault("safety", QUICK)
     return G1Controller(export, 1.4, state_reader=robot, cmd_writer=robot, sdk=SDK,
                         pose_source=kw.pop("pose", lambda: (np.zeros(3), 0.0)), log=lambda line: None, **kw)
-
-
-def _stop_after(ticks):
-    def on_tick(controller):
-        if controller.tick >= ticks:
-            raise KeyboardInterrupt
-    return on_tick
 
 
 def test_damping_then_ramp_then_waits_for_the_go(export):
@@ -334,120 +245,6 @@ def test_deploy_cli_needs_an_interface(export, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["deploy", str(export), "--psi", "1.4"])
     assert exit_.value.code == 2 and "--interface" in capsys.readouterr().err
-
-
-# ------------------------------------------------------------------------------ over DDS with the sim bridge
-def _bridge(export, domain, *extra):
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "sim-bridge", str(export), "--psi", "1.4",
-                             "--interface", "lo", "--domain", str(domain), *extra], env=env, cwd=REPO,
-                            stderr=subprocess.PIPE, text=True)
-
-
-def test_on_the_bridge_the_robot_is_lowered_from_its_gantry_and_runs_the_chain(standing_export, tmp_path):
-    """Lockstep bridge at 500 Hz physics and motor law: the G1 hangs in the default pose at the task's
-    start, is lowered onto its feet, and deploy runs damping, ramp, the balance policy, the task to its
-    handoff and the balance policy again, never from the policy's trained state."""
-    from pipeline.deploy.controller import run_deploy
-
-    domain, trace = _domain(), tmp_path / "trace.npz"
-    bridge = _bridge(standing_export, domain, "--lockstep", "--trace", str(trace), "--gantry-s", "0.6")
-    try:
-        report = run_deploy(standing_export, 1.4, interface="lo", domain_id=domain, go_flag=True, lockstep=True,
-                            odometry_topic="rt/adamimic/odometry",
-                            safety=SafetyConfig(damping_s=0.2, ramp_s=0.4, stand_s=0.4, hold_after_s=0.2))
-    finally:
-        bridge.send_signal(signal.SIGTERM)
-        bridge.wait(timeout=20)
-    assert report.end == "done", report.message
-    assert [m for _, m in report.modes] == ["damping", "ramp", "stand", "policy", "stand", "damping"]
-    assert report.phases[-1] >= 1.0 - 1e-6
-    run = np.load(trace)
-    meta = json.loads((standing_export / "policy.json").read_text())
-    first = run["qpos"][0]
-    assert np.allclose(first[:2], meta["initial_state"]["qpos"][:2], atol=0.02)  # at the task's start ...
-    assert first[2] > 0.76 + 0.03  # ... hanging above the stance
-    assert not np.allclose(first, meta["initial_state"]["qpos"][:7], atol=0.02)  # not the trained state
-
-
-def test_rehearse_runs_deploy_against_the_bridge_with_the_real_timings(standing_export):
-    """`adamimic rehearse`: real time, deploy's default damping (1 s), ramp (3 s), 2 s of standing, the
-    go, the task, then the balance policy; one JSON line per ψ with the chain's verdicts."""
-    from pipeline.deploy.rehearse import rehearse
-
-    start = time.monotonic()
-    (line,) = rehearse(standing_export, [1.4], keep_s=3.5, log=lambda _: None)
-    defaults = SafetyConfig()
-    assert time.monotonic() - start >= defaults.damping_s + defaults.ramp_s + defaults.stand_s
-    assert line["modes"][:4] == ["damping", "ramp", "stand", "policy"] and line["modes"][-1] == "damping"
-    assert abs(line["stood_before_go_s"] - defaults.stand_s) < 0.05
-    assert set(line) >= {"psi", "keyframe_errors", "success", "standing", "rest_to_rest", "joint_past_limit_rad"}
-    assert line["rest_to_rest"] == (line["success"] and line["standing"])
-    if line["deploy_end"] == "done":  # handed over and held for keep_s: the balance policy came back
-        assert line["modes"][4] == "stand" and time.monotonic() - start >= 6.0 + 3.5
-    else:  # the stand-in policies may let the robot fall: the watchdog's damping, and no rest_to_rest
-        assert line["deploy_end"] == "fault" and not line["rest_to_rest"]
-
-
-def test_killed_bridge_mid_episode_sends_the_controller_to_damping(export):
-    from pipeline.deploy.controller import run_deploy
-
-    domain = _domain()
-    bridge = _bridge(export, domain)  # real time, like the robot
-    killed_at = []
-
-    def kill_mid_episode(controller):
-        if len(controller.report.phases) == 5 and not killed_at:
-            bridge.send_signal(signal.SIGKILL)
-            killed_at.append(time.monotonic())
-        assert controller.tick < 500, "the controller never noticed"
-
-    try:
-        report = run_deploy(export, 1.4, interface="lo", domain_id=domain, go_flag=True,
-                            odometry_topic="rt/adamimic/odometry", on_tick=kill_mid_episode,
-                            safety=SafetyConfig(damping_s=0.1, ramp_s=0.2, stand_s=0.1, hold_after_s=0.1,
-                                                state_timeout_s=0.3, first_state_timeout_s=20))
-    finally:
-        bridge.kill()
-        bridge.wait(timeout=20)
-    assert killed_at, report.message
-    assert report.end == "fault" and "LowState stopped" in report.message and report.exit_code == 3
-    assert report.modes[-1][1] == "damping" and report.last_kp == [0.0] * NUM_MOTORS
-    assert time.monotonic() - killed_at[0] < 2.0
-
-
-def test_dry_run_publishes_nothing(export):
-    from pipeline.deploy.controller import run_deploy
-    from pipeline.deploy.transport import LOW_CMD_TOPIC, LOW_STATE_TOPIC, DdsLink
-
-    domain = _domain()
-    link = DdsLink(domain, "lo")
-    state_writer = link.writer(LOW_STATE_TOPIC, SDK.LowState)
-    commands = link.reader(LOW_CMD_TOPIC, SDK.LowCmd, keep_last=100)
-    meta = json.loads((export / "policy.json").read_text())
-    robot = FakeRobot(meta)
-    robot.set_q(np.asarray(meta["default_joint_pos"]))
-    stop = threading.Event()
-
-    def publish_states():  # a robot standing still, 100 Hz
-        while not stop.is_set():
-            robot.state.tick += 10
-            robot.state.crc = low_state_crc(robot.state)
-            state_writer.write(robot.state)
-            time.sleep(0.01)
-
-    thread = threading.Thread(target=publish_states, daemon=True)
-    thread.start()
-    try:
-        report = run_deploy(export, 1.4, interface="lo", domain_id=domain, dry_run=True, go_flag=True,
-                            pose=lambda: (np.zeros(3), 0.0), on_tick=_stop_after(14),
-                            safety=SafetyConfig(damping_s=0.04, ramp_s=0.1, stand_s=0.04, state_timeout_s=0.5))
-    finally:
-        stop.set()
-        thread.join()
-    assert len(report.phases) >= 3 and report.commands_written > 0 and "none published" in report.message
-    time.sleep(0.2)
-    assert commands.take(N=100) == []
 
 
 def test_key_go_counts_only_an_enter_pressed_once_armed():

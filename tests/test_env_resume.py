@@ -10,7 +10,7 @@ import torch
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs.config import EnvConfig
 from pipeline.envs.tracking_env import TrackingEnv
-from test_env import data  # noqa: F401  (the module fixture: a 61-frame standing clip, 3 keyframes)
+from env_stand_clip import data  # noqa: F401  (the module fixture: a 61-frame standing clip, 3 keyframes)
 
 N = 6
 
@@ -112,7 +112,7 @@ def test_load_rejects_another_number_of_worlds(data):  # noqa: F811
 @pytest.mark.parametrize("noise_correlation", [0.0, 0.9])
 def test_trainer_resume_on_the_tracking_env_is_bit_for_bit(tmp_path, data, noise_correlation):  # noqa: F811
     from pipeline.rl.trainer import Trainer
-    from test_rl import META, make_stage1, small_cfg
+    from toy_keyframe_env import META, make_stage1, small_cfg
 
     cfg = small_cfg(save_interval=1, ppo={"num_envs": 8, "steps_per_iteration": 8, "epochs": 1, "minibatches": 2,
                                           "noise_correlation": noise_correlation})

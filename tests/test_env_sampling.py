@@ -17,7 +17,7 @@ from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.tracking_env import TrackingEnv
 from pipeline.evaluation.config import EvalConfig
 from pipeline.evaluation.evaluate import evaluation_env_config
-from test_env import FRAMES, data, quiet_cfg  # noqa: F401  (a 61-frame standing clip with 3 ψ samples)
+from env_stand_clip import FRAMES, data, quiet_cfg  # noqa: F401  (a 61-frame standing clip with 3 ψ samples)
 
 
 def test_failure_rates_follow_finished_episodes_by_hand():

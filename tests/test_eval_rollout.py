@@ -11,7 +11,7 @@ from pipeline.evaluation.config import EvalConfig
 from pipeline.evaluation.evaluate import PolicyRunner, evaluate_policy, range_mask, rollout, spread_in_ranges
 from pipeline.evaluation.metrics import aggregate, endings, episode_metrics, pooled_episodes
 from pipeline.evaluation.report import results_table
-from test_env import data, quiet_cfg  # noqa: F401  (a 61-frame standing clip; targets moved forward by ψ)
+from env_stand_clip import data, quiet_cfg  # noqa: F401  (a 61-frame standing clip; targets moved forward by ψ)
 
 
 class ScriptedEnv:

@@ -43,6 +43,8 @@ import pyarrow.parquet as pq
 
 from pipeline.common.atomic import atomic_dir
 from pipeline.common.errors import PipelineInputError
+from pipeline.dataset.columns import (SUPPORTED_DTYPES, Feature, column_values, feature_stats, frame_column,
+                                      hf_feature, stats_json)
 
 CODEBASE_VERSION = "v3.0"
 INFO_PATH = "meta/info.json"
@@ -57,7 +59,6 @@ EPISODES_PATH_TEMPLATE = f"{EPISODES_DIR}/{CHUNK_FILE}"
 CHUNKS_SIZE = 1000
 DATA_FILE_SIZE_MB = 100
 VIDEO_FILE_SIZE_MB = 200
-QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 
 # Columns LeRobot adds to every frame, in its order.
 INDEX_COLUMNS: dict[str, str] = {
@@ -67,18 +68,7 @@ INDEX_COLUMNS: dict[str, str] = {
     "index": "int64",
     "task_index": "int64",
 }
-SUPPORTED_DTYPES = {"float32", "float64", "int32", "int64", "bool"}
 _TASK_INDEX_COLUMN = "__index_level_0__"
-
-
-@dataclass(frozen=True)
-class Feature:
-    dtype: str
-    shape: tuple[int, ...]
-    names: list[str] | dict | None = None
-
-    def to_json(self) -> dict:
-        return {"dtype": self.dtype, "shape": list(self.shape), "names": self.names}
 
 
 @dataclass
@@ -130,51 +120,6 @@ def _check_episode(root: Path, e: int, episode: dict, features: dict[str, Featur
     return int(length)
 
 
-def _frame_column(values: np.ndarray, feature: Feature) -> pa.Array:
-    """One feature's column, typed as LeRobot's `datasets` schema declares it."""
-    value_type = pa.from_numpy_dtype(np.dtype(feature.dtype))
-    flat = pa.array(np.ascontiguousarray(values, dtype=feature.dtype).reshape(-1), type=value_type)
-    shape = tuple(feature.shape)
-    if shape == (1,):
-        return flat
-    if len(shape) == 1:
-        return pa.FixedSizeListArray.from_arrays(flat, shape[0])
-    # Array2D/Array3D are stored by `datasets` as nested variable-length lists.
-    nested, nested_type = flat, value_type
-    for size in reversed(shape):
-        nested = pa.FixedSizeListArray.from_arrays(nested, size)
-        nested_type = pa.list_(nested_type)
-    return nested.cast(nested_type)
-
-
-def _hf_feature(feature: Feature) -> dict:
-    shape = tuple(feature.shape)
-    if shape == (1,):
-        return {"dtype": feature.dtype, "_type": "Value"}
-    if len(shape) == 1:
-        return {"feature": {"dtype": feature.dtype, "_type": "Value"}, "length": shape[0], "_type": "List"}
-    return {"shape": list(shape), "dtype": feature.dtype, "_type": f"Array{len(shape)}D"}
-
-
-def _stats(values: np.ndarray) -> dict[str, np.ndarray]:
-    """LeRobot's per-feature stats: reduce over frames and all axes but the last."""
-    arr = values.reshape(-1, values.shape[-1]) if values.ndim > 1 else values.reshape(-1, 1)
-    as_float = arr.astype(np.float64)
-    out = {
-        "min": arr.min(axis=0),
-        "max": arr.max(axis=0),
-        "mean": as_float.mean(axis=0),
-        "std": as_float.std(axis=0),
-        "count": np.array([values.shape[0]], dtype=np.int64),
-    }
-    for key, q in QUANTILES.items():
-        out[key] = np.quantile(as_float, q, axis=0)
-    return out
-
-
-def _stats_json(stats: dict[str, np.ndarray]) -> dict:
-    return {key: np.asarray(value).tolist() for key, value in stats.items()}
-
 
 def _write_table(table: pa.Table, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -224,7 +169,7 @@ def write_dataset(
     columns: dict[str, pa.Array] = {}
     for name, feature in features.items():
         values = np.concatenate([np.asarray(ep[name]) for ep in episodes], axis=0)
-        columns[name] = _frame_column(values, feature)
+        columns[name] = frame_column(values, feature)
     frame_index = np.concatenate([np.arange(n, dtype=np.int64) for n in lengths])
     episode_index = np.repeat(np.arange(len(episodes), dtype=np.int64), lengths)
     index_values = {
@@ -237,13 +182,13 @@ def write_dataset(
     for name, values in index_values.items():
         columns[name] = pa.array(values)
     all_features = {**features, **{n: Feature(d, (1,), None) for n, d in INDEX_COLUMNS.items()}}
-    hf_meta = {"info": {"features": {n: _hf_feature(f) for n, f in all_features.items()}}}
+    hf_meta = {"info": {"features": {n: hf_feature(f) for n, f in all_features.items()}}}
     data_table = pa.table(columns).replace_schema_metadata({"huggingface": json.dumps(hf_meta)})
 
     # ---- stats: per episode (into the episodes table) and over the whole dataset
     frame_values = {**{n: np.concatenate([np.asarray(ep[n]) for ep in episodes]) for n in features},
                     **index_values}
-    dataset_stats = {name: _stats(values) for name, values in frame_values.items()}
+    dataset_stats = {name: feature_stats(values) for name, values in frame_values.items()}
     episode_rows: dict[str, list] = {
         "episode_index": list(range(len(episodes))),
         "tasks": [[t] for t in tasks],
@@ -256,7 +201,7 @@ def write_dataset(
     for e in range(len(episodes)):
         lo, hi = starts[e], starts[e + 1]
         for name, values in frame_values.items():
-            for stat, value in _stats(values[lo:hi]).items():
+            for stat, value in feature_stats(values[lo:hi]).items():
                 episode_rows.setdefault(f"stats/{name}/{stat}", []).append(np.asarray(value).reshape(-1).tolist())
     episode_rows["meta/episodes/chunk_index"] = [0] * len(episodes)
     episode_rows["meta/episodes/file_index"] = [0] * len(episodes)
@@ -305,7 +250,7 @@ def write_dataset(
         (staging / "meta").mkdir()
         (staging / INFO_PATH).write_text(json.dumps(info, indent=4))
         (staging / STATS_PATH).write_text(
-            json.dumps({n: _stats_json(s) for n, s in dataset_stats.items()}, indent=4))
+            json.dumps({n: stats_json(s) for n, s in dataset_stats.items()}, indent=4))
         if extra_text is not None:
             (staging / EXTRA_PATH).write_text(extra_text)
         _write_table(tasks_table, staging / TASKS_PATH)
@@ -361,28 +306,6 @@ def _parse_features(raw, path: Path) -> dict[str, Feature]:
     return features
 
 
-def _column_values(table: pa.Table, name: str, feature: Feature, path: Path) -> np.ndarray:
-    column = table.column(name).combine_chunks()
-    if column.null_count:
-        raise PipelineInputError(path, name, f"{column.null_count} null value(s)")
-    flat = column
-    while pa.types.is_list(flat.type) or pa.types.is_large_list(flat.type) or pa.types.is_fixed_size_list(flat.type):
-        if flat.null_count:
-            raise PipelineInputError(path, name, "null entries inside lists")
-        flat = flat.flatten()
-    try:
-        values = flat.to_numpy(zero_copy_only=False).astype(feature.dtype, copy=False)
-    except (pa.ArrowException, TypeError, ValueError) as err:
-        raise PipelineInputError(path, name, f"not numeric: {err}") from None
-    expected = len(table) * int(np.prod(feature.shape))
-    if values.size != expected:
-        raise PipelineInputError(path, name, f"{values.size} values for {len(table)} frames of shape {feature.shape}")
-    values = values.reshape((len(table),) + tuple(feature.shape))
-    if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
-        raise PipelineInputError(path, name, "contains NaN/inf")
-    return values
-
-
 def read_dataset(root) -> LeRobotData:
     """Reads a LeRobot v3.0 dataset (numeric features) into per-episode numpy arrays."""
     root = Path(root)
@@ -423,15 +346,15 @@ def read_dataset(root) -> LeRobotData:
     data_dir = root / DATA_DIR
     data_table = _load_parquet(sorted(data_dir.glob("*/*.parquet")), data_dir)
     _require(data_table, list(all_features), data_dir)
-    index = _column_values(data_table, "index", all_features["index"], data_dir).reshape(-1)
+    index = column_values(data_table, "index", all_features["index"], data_dir).reshape(-1)
     order = np.argsort(index, kind="stable")
     data_table = data_table.take(pa.array(order))
     index = index[order]
     if not np.array_equal(index, np.arange(len(index))):
         raise PipelineInputError(data_dir, "index", "frame indices are not 0..N-1")
-    values = {name: _column_values(data_table, name, f, data_dir) for name, f in features.items()}
-    episode_of_frame = _column_values(data_table, "episode_index", all_features["episode_index"], data_dir).reshape(-1)
-    task_of_frame = _column_values(data_table, "task_index", all_features["task_index"], data_dir).reshape(-1)
+    values = {name: column_values(data_table, name, f, data_dir) for name, f in features.items()}
+    episode_of_frame = column_values(data_table, "episode_index", all_features["episode_index"], data_dir).reshape(-1)
+    task_of_frame = column_values(data_table, "task_index", all_features["task_index"], data_dir).reshape(-1)
 
     episodes, tasks = [], []
     rows = sorted(episodes_table.select(["episode_index", "tasks", "dataset_from_index", "dataset_to_index"]).to_pylist(),

@@ -100,9 +100,29 @@ def add_chain_metrics(folder: str | Path, episodes_per_range: int = 32, seed: in
     return nominal
 
 
-if __name__ == "__main__":
+def main(argv=None) -> int:
+    import argparse
     import sys
 
-    for path in sys.argv[1:]:
-        result = add_chain_metrics(path)
-        print(path, {name: r["rest_to_rest"]["mean"] for name, r in result["ranges"].items()}, result["endings"])
+    from pipeline.common.errors import PipelineInputError
+
+    parser = argparse.ArgumentParser(prog="python -m pipeline.evaluation.chain_eval",
+                                     description="Judge committed policy folders as chains: add rest_to_rest to their "
+                                                 "metrics.json and write metrics_dr.json.")
+    parser.add_argument("folders", nargs="+", type=Path, help="models/pretrained/<task> (export/ with its chain, metrics.json)")
+    parser.add_argument("--episodes", type=int, default=32, help="chains per ψ range (default 32)")
+    args = parser.parse_args(argv)
+    for folder in args.folders:
+        for needed in ("export/policy.json", "metrics.json"):
+            if not (folder / needed).is_file():
+                print(PipelineInputError(folder / needed, None, "missing: a committed policy folder holds export/ and "
+                                         "the evaluate stage's metrics.json"), file=sys.stderr)
+                return 2
+    for folder in args.folders:
+        result = add_chain_metrics(folder, episodes_per_range=args.episodes)
+        print(folder, {name: r["rest_to_rest"]["mean"] for name, r in result["ranges"].items()}, result["endings"])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

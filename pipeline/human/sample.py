@@ -11,7 +11,7 @@ How it is made:
     local axis-angles of a body whose two sides move alike;
   * until the bottom of the crouch the feet are pinned (their mean x stays put, the lowest sole point
     stays on the floor z = 0), so the body moves by the pose alone;
-  * in the push-off the centre of mass is planned (`_planned_push`): it rises to the take-off height
+  * in the push-off the centre of mass is planned (`planned_push`): it rises to the take-off height
     and speed and moves forward as an inverted pendulum about one zero-moment point between the ankles
     and the balls of the feet, chosen so that it leaves the ground at the speed the flight and landing
     need; the legs are solved so the feet stay flat where they stood. The arms swing up through the
@@ -21,7 +21,7 @@ How it is made:
     that its angular momentum about that centre stays what it was at take-off while the arms and legs
     swing (`_spin_free_flight`);
   * after touch-down the centre of mass is planned so the landing can be done without tipping: its
-    zero-moment point stays over the landed feet (`_balanced_landing`), which fixes how far behind
+    zero-moment point stays over the landed feet (`balanced_landing`), which fixes how far behind
     the feet it touches down for the flight's speed; the legs are then solved so both feet stay
     flat where they landed, `JUMP_DISTANCE_M` ahead of where they took off.
 """
@@ -38,6 +38,7 @@ from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 from pipeline import REPO_ROOT
 from pipeline.common import quat
 from pipeline.human import smpl
+from pipeline.human.sample_dynamics import GRAVITY, balanced_landing, planned_push
 
 SAMPLE_PATH = REPO_ROOT / "data" / "sample" / "far_jump_synthetic.npz"
 FPS = 30.0
@@ -48,7 +49,6 @@ TAKEOFF_S = 1.2
 TAKEOFF_CROUCH_M = 0.08
 TOUCHDOWN_S = 49.0 / 30.0  # a frame's time: the touch-down key is where the landing's legs are solved
 JUMP_DISTANCE_M = 1.0
-GRAVITY = 9.81
 SOFT_KNEES_M = 0.01
 TOUCHDOWN_DROP_M = 0.10  # centre of mass below standing height at touch-down
 ABSORB_DEPTH_M = 0.30  # how far the centre of mass sinks below standing height while absorbing the landing
@@ -188,72 +188,6 @@ def _solve_leg(tracks: dict[str, np.ndarray], frames: np.ndarray, side: str, tra
     return q[:, 0], q[:, 1]
 
 
-def _pendulum(height, times: np.ndarray, x0: float, v0: float, zmp: float, steps_per_frame: int = 20):
-    """The centre of mass's horizontal path (at `times`) and its speed at times[-1] when its zero-moment
-    point is held at `zmp`: x'' = (g + z'') / z (x - zmp), the inverted pendulum of the planned
-    height z(t) = height(t). Semi-implicit Euler, `steps_per_frame` steps per frame."""
-    dt = (times[1] - times[0]) / steps_per_frame
-    fine = times[0] + dt * np.arange((len(times) - 1) * steps_per_frame + 1)
-    stiffness = (GRAVITY + height(fine, 2)) / height(fine)
-    x, v = x0, v0
-    path = np.empty(len(fine))
-    for i, k in enumerate(stiffness):
-        path[i] = x
-        if i + 1 < len(fine):
-            v += k * (x - zmp) * dt
-            x += v * dt
-    return path[::steps_per_frame], v
-
-
-def _bisect(f, low: float, high: float, iterations: int = 60) -> float:
-    """A root of f, decreasing on [low, high]: f(low) > 0 > f(high)."""
-    for _ in range(iterations):
-        mid = 0.5 * (low + high)
-        if f(mid) > 0.0:
-            low = mid
-        else:
-            high = mid
-    return 0.5 * (low + high)
-
-
-def _balanced_landing(height, times, x_takeoff: float, x_rest: float, flight_time: float):
-    """The centre of mass's horizontal path after touch-down (at times[0]) and the flight's speed vx.
-
-    The zero-moment point is held at x_rest, where the final standing pose has its centre of mass
-    over the landed feet, so the robot can do it without tipping. Of the touch-down points D behind
-    x_rest (reached by a flight from x_takeoff with vx = (x_rest - D - x_takeoff) / T), too near ones
-    overshoot x_rest and too far ones fall back: the one that comes to rest is found by bisection.
-    """
-    def flight_speed(distance):
-        return (x_rest - distance - x_takeoff) / flight_time
-
-    def overshoot(distance):
-        return _pendulum(height, times, x_rest - distance, flight_speed(distance), x_rest)[0].max() - x_rest
-
-    distance = _bisect(overshoot, 0.0, x_rest - x_takeoff)
-    return _pendulum(height, times, x_rest - distance, flight_speed(distance), x_rest)[0], flight_speed(distance)
-
-
-def _planned_push(height, times, x_start: float, v_start: float, zmp_range: tuple[float, float], land):
-    """The centre of mass's horizontal path through the push-off (times[0] .. take-off at times[-1])
-    and its take-off speed.
-
-    The push starts from the crouch's own position and speed, and the zero-moment point is held at one
-    place on the feet, so the ankles need not hold the body up on the toes (the pose-driven push the
-    sample had before asked 2.2 times the G1's ankle torque). The place is the one whose take-off
-    speed is what `land(x_takeoff)` (the flight and landing plan) needs from where the push ends.
-    """
-    def surplus(zmp):  # decreasing: a zero-moment point further forward pushes less
-        path, speed = _pendulum(height, times, x_start, v_start, zmp)
-        return speed - land(path[-1])[1]
-
-    low, high = zmp_range
-    if not surplus(low) > 0.0 > surplus(high):
-        raise ValueError(f"sample push-off: no zero-moment point in {zmp_range} gives the take-off speed "
-                         "the landing needs")
-    return _pendulum(height, times, x_start, v_start, _bisect(surplus, low, high))
-
-
 def _pitch_whole_body(tracks: dict[str, np.ndarray], frames, angle) -> None:
     """Lean the whole body forward by `angle` on `frames`, limbs and all (hips and arms are keyed
     against the world's vertical, so they turn with the pelvis by the same angle)."""
@@ -335,14 +269,14 @@ def make_sample_clip() -> SampleClip:
     after = np.arange(touchdown, frames)
 
     def land(x_takeoff):
-        return _balanced_landing(landing_height, times[after], x_takeoff, com_rest[0], flight_time)
+        return balanced_landing(landing_height, times[after], x_takeoff, com_rest[0], flight_time)
 
     # The push: the centre of mass rises from the crouch's height and speed to the take-off's, and moves
     # forward as the pendulum of its zero-moment point (between a little behind the ankles and the balls of the feet).
     push = np.arange(push_start, takeoff + 1)
     push_height = CubicHermiteSpline([times[push_start], times[takeoff]], [posed_com[push_start, 2], com_takeoff_z],
                                      [posed_velocity[push_start, 2], vz0])
-    push_x, vx = _planned_push(push_height, times[push], posed_com[push_start, 0], posed_velocity[push_start, 0],
+    push_x, vx = planned_push(push_height, times[push], posed_com[push_start, 0], posed_velocity[push_start, 0],
                                (ankle_x - 0.5 * (ball_x - ankle_x), ball_x), land)
     landing_x, _ = land(push_x[-1])
 
