@@ -168,3 +168,31 @@ def test_figure_and_video_written(far, tmp_path):
     cap = cv2.VideoCapture(str(tmp_path / "rule.mp4"))
     ok, frame = cap.read()
     assert ok and frame.shape[2] == 3 and cap.get(cv2.CAP_PROP_FRAME_COUNT) >= 10
+
+
+def test_tennis_psi_moves_the_hit_further_along_the_persons_shuffle():
+    """The shared tennis clip, retargeted: ψ (the hit's lateral distance) moves the hit keyframe, and the ones after
+    it, along the way the person shuffles, so a larger ψ reaches further from the start; nothing before the hit moves."""
+    from pathlib import Path
+
+    from pipeline.common.yaml_strict import load_yaml_strict
+    from pipeline.human.importers import load_human_motion
+    from pipeline.keyframes.task_parsing import load_tasks
+    from pipeline.retarget import RetargetConfig, retarget
+
+    paper = Path(__file__).resolve().parents[1] / "pipeline" / "keyframes" / "paper_tasks.yaml"
+    clip = Path(__file__).resolve().parents[2] / "shared" / "data" / "adamimic_smpl" / "tennis_hit.npz"
+    if not clip.exists():
+        pytest.skip(f"{clip} not present")
+    task = load_tasks(load_yaml_strict(paper)["tasks"])["tennis_hit"]
+    motion, _ = retarget(load_human_motion(clip), RetargetConfig(), progress=False)
+    table = select_keyframes(motion, task)
+    data = build_tracking_data(motion, task, table, "edit", 4)
+    hit = list(data.keyframe_labels).index("hit")
+    start = motion.root_pos[0, :2]
+    shuffle = motion.root_pos[table.frames[hit], :2] - start  # the unedited hit, from the start
+    reach = (motion.root_pos[table.frames, :2][None] + data.keyframe_offsets[..., :2] - start) @ (shuffle / np.linalg.norm(shuffle))
+    assert not data.keyframe_offsets[:, :hit].any()
+    assert np.all(np.diff(reach[:, hit]) > 0) and np.all(np.diff(reach[:, -1]) > 0)  # ψ ascending: further
+    np.testing.assert_allclose(np.diff(reach[:, hit]), np.diff(data.psi) * abs(shuffle[1]) / np.linalg.norm(shuffle),
+                               rtol=1e-6)
