@@ -179,4 +179,8 @@ def serve(path: str | Path, host: str = "127.0.0.1", port: int = 8080, log=print
         server.stop()
         raise
     log(f"adamimic view: serving {path} at http://{host}:{server.get_port()} (Ctrl-C stops)")
-    viewer.run()
+    try:
+        viewer.run()
+    except BaseException:  # Ctrl-C while mjviser builds its panel, before its own handler is in place
+        server.stop()
+        raise
