@@ -15,6 +15,8 @@ It never opens a browser itself; it prints the address and serves until Ctrl-C.
 from __future__ import annotations
 
 import json
+import signal
+import threading
 from pathlib import Path
 
 import mujoco
@@ -165,6 +167,9 @@ def serve(path: str | Path, host: str = "127.0.0.1", port: int = 8080, log=print
     if not path.exists():
         raise PipelineInputError(path, None, "nothing to view here (an export folder, data/retargeted/<task> or a "
                                  "keyframes dataset)")
+    if threading.current_thread() is threading.main_thread():
+        # Ctrl-C (SIGINT) stops it even when started where SIGINT is ignored (a shell's background job)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     server = _server(host, port)
     try:
         if (path / "policy.json").is_file():
