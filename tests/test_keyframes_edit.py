@@ -175,16 +175,15 @@ def test_tennis_psi_moves_the_hit_further_along_the_persons_shuffle():
     it, along the way the person shuffles, so a larger ψ reaches further from the start; nothing before the hit moves."""
     from pathlib import Path
 
-    from pipeline.common.yaml_strict import load_yaml_strict
+    from pipeline.config import paper_tasks
     from pipeline.human.importers import load_human_motion
     from pipeline.keyframes.task_parsing import load_tasks
     from pipeline.retarget import RetargetConfig, retarget
 
-    paper = Path(__file__).resolve().parents[1] / "pipeline" / "keyframes" / "paper_tasks.yaml"
     clip = Path(__file__).resolve().parents[2] / "shared" / "data" / "adamimic_smpl" / "tennis_hit.npz"
     if not clip.exists():
         pytest.skip(f"{clip} not present")
-    task = load_tasks(load_yaml_strict(paper)["tasks"])["tennis_hit"]
+    task = load_tasks(paper_tasks())["tennis_hit"]
     motion, _ = retarget(load_human_motion(clip), RetargetConfig(), progress=False)
     table = select_keyframes(motion, task)
     data = build_tracking_data(motion, task, table, "edit", 4)

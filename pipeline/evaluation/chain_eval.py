@@ -9,11 +9,13 @@ friction, restitution, gains, motor strength, control delay) into its own model.
 from __future__ import annotations
 
 import copy
+import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from pipeline.common.errors import PipelineInputError
 from pipeline.envs.config import RandomizationConfig
 from pipeline.envs.randomization import DomainRandomizer
 from pipeline.evaluation.evaluate import spread_in_ranges
@@ -77,18 +79,27 @@ def merge_chain(doc: dict, nominal: dict) -> None:
     doc["chain"] = {k: nominal[k] for k in ("chain", "endings")}
 
 
+def read_policy_folder(folder: str | Path) -> tuple[dict, dict]:
+    """(export/policy.json, metrics.json) of a committed policy folder; a missing one is refused, naming it."""
+    folder = Path(folder)
+    docs = []
+    for needed in (folder / "export" / "policy.json", folder / "metrics.json"):
+        if not needed.is_file():
+            raise PipelineInputError(needed, None, "missing: a committed policy folder holds export/ and the evaluate "
+                                     "stage's metrics.json")
+        docs.append(json.loads(needed.read_text()))
+    return docs[0], docs[1]
+
+
 def add_chain_metrics(folder: str | Path, episodes_per_range: int = 32, seed: int = 0) -> dict:
     """A committed policy folder (export/ with its chain, the evaluate stage's metrics.json) judged as a chain:
     `rest_to_rest`, `standing` and `chain_success` added to each range of metrics.json, metrics_dr.json written
     (the same as the evaluate stage does for a policy it trains). Returns the nominal chain evaluation."""
-    import json
-
     from pipeline.common.atomic import write_text_atomic
     from pipeline.evaluation.run import chain_document
 
+    meta, doc = read_policy_folder(folder)
     folder = Path(folder)
-    meta = json.loads((folder / "export" / "policy.json").read_text())
-    doc = json.loads((folder / "metrics.json").read_text())
     psi_ranges = {name: meta["psi_ranges"][name] for name in ("easy", "hard") if name in meta["psi_ranges"]}
     nominal = evaluate_chain(folder / "export", psi_ranges, episodes_per_range, seed=seed)
     randomised = evaluate_chain(folder / "export", psi_ranges, episodes_per_range, randomization=RandomizationConfig(),
@@ -104,23 +115,21 @@ def main(argv=None) -> int:
     import argparse
     import sys
 
-    from pipeline.common.errors import PipelineInputError
-
     parser = argparse.ArgumentParser(prog="python -m pipeline.evaluation.chain_eval",
                                      description="Judge committed policy folders as chains: add rest_to_rest to their "
                                                  "metrics.json and write metrics_dr.json.")
     parser.add_argument("folders", nargs="+", type=Path, help="models/pretrained/<task> (export/ with its chain, metrics.json)")
     parser.add_argument("--episodes", type=int, default=32, help="chains per ψ range (default 32)")
     args = parser.parse_args(argv)
-    for folder in args.folders:
-        for needed in ("export/policy.json", "metrics.json"):
-            if not (folder / needed).is_file():
-                print(PipelineInputError(folder / needed, None, "missing: a committed policy folder holds export/ and "
-                                         "the evaluate stage's metrics.json"), file=sys.stderr)
-                return 2
-    for folder in args.folders:
-        result = add_chain_metrics(folder, episodes_per_range=args.episodes)
-        print(folder, {name: r["rest_to_rest"]["mean"] for name, r in result["ranges"].items()}, result["endings"])
+    try:
+        for folder in args.folders:  # every folder checked before any is written
+            read_policy_folder(folder)
+        for folder in args.folders:
+            result = add_chain_metrics(folder, episodes_per_range=args.episodes)
+            print(folder, {name: r["rest_to_rest"]["mean"] for name, r in result["ranges"].items()}, result["endings"])
+    except PipelineInputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     return 0
 
 

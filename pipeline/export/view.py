@@ -180,12 +180,8 @@ def serve(path: str | Path, host: str = "127.0.0.1", port: int = 8080, log=print
             viewer = view_keyframes(path, server)
         else:
             raise PipelineInputError(path, None, "not an export folder, a retargeted task or a keyframes dataset")
-    except BaseException:  # a bad path, or Ctrl-C while the scene builds: viser's threads would outlive us
-        server.stop()
-        raise
-    log(f"adamimic view: serving {path} at http://{host}:{server.get_port()} (Ctrl-C stops)")
-    try:
+        log(f"adamimic view: serving {path} at http://{host}:{server.get_port()} (Ctrl-C stops)")
         viewer.run()
-    except BaseException:  # Ctrl-C while mjviser builds its panel, before its own handler is in place
+    except BaseException:  # a bad path, or Ctrl-C before mjviser's loop has its handler: viser's threads would outlive us
         server.stop()
         raise
