@@ -125,7 +125,17 @@ def run_train_stage1(params: PipelineConfig, args) -> None:
     data = _tracking_data(params, args.task, args.variant)
     run_dir = paths.model_dir(args.task, args.variant) / "stage1"
     _finish_training(train_stage1(data, params.env, _train_config(params, args.variant), run_dir,
-                                  resume=args.resume, chunk_s=_chunk_s(args)))
+                                  resume=args.resume, chunk_s=_chunk_s(args), go_states=_go_states(params)))
+
+
+def _go_states(params: PipelineConfig) -> dict | None:
+    """The states the chain's balance policy hands the robot over in at the go (env.go_starts), or None."""
+    go = params.env.go_starts
+    if go.prob <= 0:
+        return None
+    from pipeline.balance.go_states import record_go_states
+
+    return record_go_states(balance_export(params), go.stands, stand_s=go.stand_s, seed=params.train.seed)
 
 
 def run_train_stage2(params: PipelineConfig, args) -> None:
@@ -143,7 +153,7 @@ def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resum
     if cfg.variant_spec.stage2:
         data = _tracking_data(params, args.task, args.variant)
         return train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy", resume=resume,
-                            chunk_s=_chunk_s(args))
+                            chunk_s=_chunk_s(args), go_states=_go_states(params))
     # One-stage variants: their final policy is the stage-1 policy, copied so later stages
     # read every variant from the same place.
     with atomic_dir(final) as staging:
@@ -175,7 +185,8 @@ def run_train_seed(params: PipelineConfig, args) -> None:
         stage1 = json.loads((stage1_dir / "metrics.json").read_text())
     else:
         data = _tracking_data(params, args.task, args.variant)
-        stage1 = train_stage1(data, params.env, cfg, stage1_dir, resume=args.resume, chunk_s=_chunk_s(args))
+        stage1 = train_stage1(data, params.env, cfg, stage1_dir, resume=args.resume, chunk_s=_chunk_s(args),
+                              go_states=_go_states(params))
         if stage1.get("paused"):
             _finish_training(stage1)
     final = _train_stage2_into(params, args, cfg, model_dir, resume=args.resume)

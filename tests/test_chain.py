@@ -98,21 +98,37 @@ def test_the_chain_starts_standing_at_rest_and_runs_stand_task_balance(chain_exp
     assert set(result.to_json()) >= {"psi", "success", "standing", "rest_to_rest", "keyframe_errors", "end"}
 
 
-def test_judge_standing_reads_tilt_height_and_speed():
+def test_judge_standing_reads_tilt_height_speed_and_ground():
     from pipeline.robot.g1 import build_model, default_qpos
 
     model = build_model()
-    qpos, qvel = default_qpos(), np.zeros(model.nv)
-    assert judge_standing(model, qpos, qvel)
-    moving = qvel.copy()
-    moving[0] = 0.5
-    assert not judge_standing(model, qpos, moving)
+    qpos = default_qpos()
+    assert judge_standing(model, qpos, 0.0) and judge_standing(model, qpos, 0.0, ground=0.0)
+    assert not judge_standing(model, qpos, 0.5)
     low = qpos.copy()
     low[2] = 0.4
-    assert not judge_standing(model, low, qvel)
+    assert not judge_standing(model, low, 0.0)
     tilted = qpos.copy()
     tilted[3:7] = [np.cos(0.3), np.sin(0.3), 0.0, 0.0]  # 34° about x
-    assert not judge_standing(model, tilted, qvel)
+    assert not judge_standing(model, tilted, 0.0)
+    # standing on the floor where the reference ends on a 5 cm step: not where the task ends
+    assert not judge_standing(model, qpos, 0.0, ground=0.05)
+
+
+def test_the_reference_ends_on_the_step_it_climbs():
+    from pipeline.export.chain import end_ground
+    from pipeline.robot.g1 import build_spec
+
+    def step(spec):
+        spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1])
+        spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5, 1.0, 0.1], pos=[1.5, 0.0, 0.1])
+
+    model = build_spec(terrain=step).compile()
+    targets = np.zeros((3, 4, 3))
+    targets[-1, :, 0] = [1.2, 1.3, 1.4, 1.5]  # the last keyframe's bodies over the step, the others before it
+    assert end_ground(model, targets) == pytest.approx(0.2)
+    targets[-1, :, 0] = 0.5
+    assert end_ground(model, targets) == pytest.approx(0.0)
 
 
 def test_stance_state_stands_on_the_ground_under_the_start(chain_export):

@@ -29,7 +29,6 @@ import numpy as np
 
 from pipeline.deploy.safety import SafetyConfig
 from pipeline.deploy.transport import ODOMETRY_TOPIC
-from pipeline.envs.falls import STANDING
 
 SIM_JOINT_MARGIN_RAD = 0.4
 
@@ -43,7 +42,7 @@ def _bridge(export_dir: Path, psi: float, domain: int, trace: Path, gantry_s: fl
 
 def judge_trace(export_dir: Path, psi: float, report, trace: dict, chain: dict) -> dict:
     """The chain's verdicts from the bridge's trace and the controller's report."""
-    from pipeline.export.chain import balance_fallen, ground_height_under, read_chain
+    from pipeline.export.chain import balance_fallen, end_ground, judge_standing, read_chain
     from pipeline.export.policy_step import projected_gravity
     from pipeline.export.sim2sim import EpisodeJudge, Sim2Sim, build_scene
 
@@ -53,7 +52,8 @@ def judge_trace(export_dir: Path, psi: float, report, trace: dict, chain: dict) 
     model = build_scene(meta, psi)
     ticks = np.asarray(trace["tick"])
     control_ms = int(round(1000 * float(meta["control_dt"])))
-    judge = EpisodeJudge(meta, psi, task.keyframe_targets(psi))
+    targets = task.keyframe_targets(psi)
+    judge = EpisodeJudge(meta, psi, targets)
 
     def after(state_tick: int) -> int:  # the trace row just after the command acted on `state_tick`
         return int(min(np.searchsorted(ticks, state_tick + control_ms), len(ticks) - 1))
@@ -76,8 +76,7 @@ def judge_trace(export_dir: Path, psi: float, report, trace: dict, chain: dict) 
                          for r in range(start, stop + 1))
             qpos = trace["qpos"][stop]
             speed = float(np.linalg.norm(trace["qpos"][stop][0:3] - trace["qpos"][stop - 1][0:3])) / (control_ms / 1000.0)
-            height = float(qpos[2]) - ground_height_under(model, float(qpos[0]), float(qpos[1]))
-            standing = not fallen and STANDING(projected_gravity(qpos[3:7])[:2], height, speed)
+            standing = not fallen and judge_standing(model, qpos, speed, end_ground(model, targets))
     return {"psi": float(psi), "keyframe_errors": [round(e, 4) for e in judge.errors], "success": bool(success),
             "standing": bool(standing), "rest_to_rest": bool(success and standing), "deploy_end": report.end,
             "deploy_message": report.message, "joint_past_limit_rad": round(float(report.joint_past_limit_rad), 3),

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pipeline.common.errors import PipelineInputError
 from pipeline.common.typed_config import replace_from_mapping
 from pipeline.envs.falls import SUCCESS_THRESHOLD_M
+from pipeline.envs.go_starts import GoStartConfig
 from pipeline.envs.reward_config import RewardConfig
 
 ACTION_OFFSETS = ("feedforward", "reference", "default")  # what a zero action aims the joints at (EnvConfig)
@@ -245,6 +246,7 @@ class EnvConfig:
     rsi_joint_pos_noise: float = 0.0
     rsi_sampling: StartFrameSamplingConfig = field(default_factory=StartFrameSamplingConfig)
     own_state_starts: OwnStateStartConfig = field(default_factory=OwnStateStartConfig)
+    go_starts: GoStartConfig = field(default_factory=GoStartConfig)  # envs/go_starts.py
     # Joint targets = offset + action_scale · action. "feedforward": the reference's joints at the frame
     # the step ends on, plus the PD actuators' feedforward (Kd q̇_ref + τ_ref) / Kp so that a zero action
     # produces the reference's own torques (envs/feedforward.py); "reference": the reference's joints
@@ -314,6 +316,7 @@ class EnvConfig:
             bad("own_state_starts.capacity", "must be >= 1")
         if not self.own_state_starts.at_label:
             bad("own_state_starts.at_label", "must name a keyframe label, e.g. 'landing'")
+        self.go_starts.validate(where)
         if self.action_offset not in ACTION_OFFSETS:
             bad("action_offset", f"must be one of {', '.join(ACTION_OFFSETS)}, got {self.action_offset!r}")
         if self.sampling.mode not in ("uniform", "adaptive", "curriculum", "sweep"):

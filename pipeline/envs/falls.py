@@ -5,7 +5,8 @@ array arithmetic, so it takes torch tensors and numpy arrays alike.
   fell by tilt:    |tilt_xy|² > max_tilt²   (tilt_xy: the projected gravity's x, y, or its error against a reference)
   fell by height:  base height < min_height
   standing:        |g_xy| < `STANDING.max_tilt`, pelvis ≥ `STANDING.min_height` above the ground under it,
-                   base speed < `STANDING.max_speed`, no fall check fired before.
+                   base speed < `STANDING.max_speed`, that ground within `STANDING.max_ground_offset` of the
+                   ground the reference ends on, no fall check fired before.
 """
 
 from __future__ import annotations
@@ -26,15 +27,19 @@ def fall_flags(tilt_xy, base_height, max_tilt, min_height):
 
 @dataclass(frozen=True)
 class StandingTest:
-    """Upright, high and still: what `rest_to_rest` asks of the robot at the end of its chain."""
+    """Upright, high and still, where the task ends: what `rest_to_rest` asks of the robot at the end of its chain."""
 
     max_tilt: float = 0.3  # |projected gravity xy| (sin of the lean: 17°)
     min_height: float = 0.55  # m, pelvis above the ground under it
     max_speed: float = 0.2  # m/s, the base's linear speed
+    # m between the ground under the pelvis and the ground under the reference's last keyframe: a step up
+    # that lands in front of the step and stands there has not done the task (the smallest step is 5 cm)
+    max_ground_offset: float = 0.02
 
-    def __call__(self, gravity_xy, height_above_ground, base_speed) -> bool:
+    def __call__(self, gravity_xy, height_above_ground, base_speed, ground_offset=0.0) -> bool:
         tilt2 = float((gravity_xy**2).sum(-1))
-        return tilt2 < self.max_tilt**2 and float(height_above_ground) >= self.min_height and float(base_speed) < self.max_speed
+        return (tilt2 < self.max_tilt**2 and float(height_above_ground) >= self.min_height
+                and float(base_speed) < self.max_speed and abs(float(ground_offset)) <= self.max_ground_offset)
 
 
 STANDING = StandingTest()

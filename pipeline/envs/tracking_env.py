@@ -18,6 +18,7 @@ import torch
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs import rewards as R
 from pipeline.envs.config import EnvConfig
+from pipeline.envs.go_starts import GoStates
 from pipeline.envs.robot_env import PENALTY_TERMS, RobotEnv
 from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.scene import build_scene, terrain_fields_per_sample
@@ -39,7 +40,7 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
                                                 "odom_origin_quat", "start_frame", "keyframe_missed")
 
     def __init__(self, cfg: EnvConfig, data: TrackingData, *, num_envs: int, backend="cpu", device="cpu",
-                 seed: int = 0, task=None):
+                 seed: int = 0, task=None, go_states: dict | None = None):
         self.data = data
         self.robot = load_robot_config()
         source = f"task {data.task}"
@@ -52,6 +53,12 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
         self.seed = seed
         self._precompute_reference()
         self._precompute_robot()
+        self.go_states = None  # starts at t = 0 where the balance policy hands over (envs/go_starts.py)
+        if cfg.go_starts.prob > 0:
+            if go_states is None:
+                raise PipelineInputError("env", "go_starts.prob", "needs the balance policy's go states (the training "
+                                         "stages record them from params.yaml balance.out)")
+            self.go_states = GoStates(go_states, self.model.nq, self.model.nv, self.device)
         self._start_randomizer()
         self.sampler = SampleSampler(cfg.sampling, data.psi, data.psi_raw, n, self.device)
         self._terrain_fields = terrain_fields_per_sample(self.model, terrain_layout, data.psi, source)

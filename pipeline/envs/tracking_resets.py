@@ -76,6 +76,13 @@ class TrackingResets:
             qvel[:, 0:6] += started_late * self.rsi_vel_noise * (2.0 * torch.rand(n, 6, device=dev) - 1.0)
         if self.rsi_pose_noise:  # off: no draw, as above
             qpos = self._perturb_start_pose(ids, qpos, qvel, frame, sample)
+        at_go = None
+        if self.go_states is not None:  # off: no draw, as above
+            at_go = ((frame == 0) & (torch.rand(n, device=dev) < self.cfg.go_starts.prob)).nonzero().squeeze(-1)
+            stance = self.ref_root_pos[0] + self.offset_table[sample[at_go], 0]
+            go_qpos, go_qvel = self.go_states.place(at_go.numel(), stance, yaw_quat(self.ref_root_quat[0]))
+            qpos, qvel = qpos.clone(), qvel.clone()
+            qpos[at_go], qvel[at_go] = go_qpos.to(qpos.dtype), go_qvel.to(qvel.dtype)
         own, restart = None, None
         if self.own_states is not None and len(self.own_states) > 0:  # empty: no draw, as with the option off
             own = (torch.rand(n, device=dev) < self.cfg.own_state_starts.prob).nonzero().squeeze(-1)
@@ -90,7 +97,11 @@ class TrackingResets:
             self.backend.set_model_field("geom_pos", ids_np, self._terrain_fields[0][sample_np])
             if self._terrain_fields[1] is not None:
                 self.backend.set_model_field("geom_size", ids_np, self._terrain_fields[1][sample_np])
-        self._randomize_worlds(ids, self.ref_joint_pos[frame])
+        held = self.ref_joint_pos[frame]
+        if at_go is not None and at_go.numel():  # the motors hold about where the balance policy left them
+            held = held.clone()
+            held[at_go] = qpos[at_go, 7:].to(held.dtype)
+        self._randomize_worlds(ids, held)
 
         self.sample[ids] = sample
         self.frame[ids] = frame
@@ -101,6 +112,9 @@ class TrackingResets:
         self._restart_episodes(ids, qvel[:, 6:])
         self.odom_origin[ids] = self.ref_root_pos[0] + self.offset_table[sample, 0]
         self.odom_origin_quat[ids] = yaw_quat(self.ref_root_quat[0])
+        if at_go is not None and at_go.numel():  # a chain's odometry counts from the pose at the go
+            self.odom_origin[ids[at_go]] = qpos[at_go, 0:3].to(self.odom_origin.dtype)
+            self.odom_origin_quat[ids[at_go]] = yaw_quat(qpos[at_go, 3:7]).to(self.odom_origin_quat.dtype)
         frame_obs, privileged, odom = self._frame_features(ids)
         self.odometry[ids] = odom
         self._restart_observations(ids, frame_obs, privileged)

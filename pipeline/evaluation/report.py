@@ -172,9 +172,9 @@ def rest_to_rest_table(docs: dict[str, dict], randomised: dict[str, dict]) -> st
     lines = ["\n## From rest to rest\n",
              "The chain a robot runs: the balance policy holds the stance at rest, the task policy runs on the go, the "
              "balance policy takes over when the task's phase ends. `rest_to_rest` (%): every keyframe within 1 m and "
-             "standing 3 s after the handoff (|g_xy| < 0.3, pelvis ≥ 0.55 m above the ground, base speed < 0.2 m/s, no "
-             "fall before); in brackets the task stretch's success / standing. DR: under the paper's domain "
-             "randomisation.\n",
+             "standing 3 s after the handoff (|g_xy| < 0.3, pelvis ≥ 0.55 m above the ground, on the ground the "
+             "reference ends on, base speed < 0.2 m/s, no fall before); in brackets the task stretch's success / "
+             "standing. DR: under the paper's domain randomisation.\n",
              "| Method | " + " | ".join(f"{g} rest_to_rest" for g in groups) + " | " +
              " | ".join(f"{g} DR" for g in groups) + " |", "|---|" + "---|" * (2 * len(groups))]
 

@@ -14,7 +14,7 @@ robot where `adamimic deploy` puts it before the go) with only the ONNX files an
   success       the paper's test on the task stretch (every keyframe within 1 m, no fall);
   standing      `after_s` after the handoff, with the balance policy in charge, no fall check fired
                 since the go and `pipeline.envs.falls.STANDING` holds (upright, pelvis high above the
-                ground under it, base still);
+                ground under it, base still, on the ground the reference ends on);
   rest_to_rest  both.
 
 The evaluation, `adamimic sim2sim` and `adamimic rehearse` all judge with `judge_standing` below.
@@ -104,10 +104,18 @@ def ground_height_under(model: mujoco.MjModel, x: float, y: float) -> float:
     return top if np.isfinite(top) else 0.0
 
 
-def judge_standing(model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray) -> bool:
-    """`STANDING` of one robot state: upright, high above the ground under the pelvis, still."""
-    height = float(qpos[2]) - ground_height_under(model, float(qpos[0]), float(qpos[1]))
-    return STANDING(projected_gravity(qpos[3:7])[:2], height, float(np.linalg.norm(qvel[0:3])))
+def end_ground(model: mujoco.MjModel, keyframe_targets: np.ndarray) -> float:
+    """The ground the reference ends on: under its last keyframe's tracked bodies (their mean x, y) at this ψ."""
+    x, y = np.asarray(keyframe_targets)[-1, :, 0:2].mean(0)
+    return ground_height_under(model, float(x), float(y))
+
+
+def judge_standing(model: mujoco.MjModel, qpos: np.ndarray, speed: float, ground: float | None = None) -> bool:
+    """`STANDING` of one robot state: upright, high above the ground under the pelvis, moving at `speed`
+    (m/s), on `ground` (the height `end_ground` gives; None: whatever ground it is on)."""
+    under = ground_height_under(model, float(qpos[0]), float(qpos[1]))
+    return STANDING(projected_gravity(qpos[3:7])[:2], float(qpos[2]) - under, speed,
+                    0.0 if ground is None else under - ground)
 
 
 def balance_fallen(model, qpos: np.ndarray, terminations: dict) -> str | None:
@@ -265,7 +273,7 @@ class ChainRunner:
         fallen = hold(after_steps, "balance")
         if fallen is not None:
             return finish(fallen, "balance")
-        standing = judge_standing(model, data.qpos, data.qvel)
+        standing = judge_standing(model, data.qpos, float(np.linalg.norm(data.qvel[0:3])), end_ground(model, targets))
         return finish("standing" if standing else "not_standing", "balance", standing)
 
 
