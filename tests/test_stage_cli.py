@@ -12,7 +12,8 @@ def trainer_calls(monkeypatch):
     """Stage 1 stands in: it records its keyword arguments and answers paused or finished."""
     calls, answers = [], []
 
-    def fake_train_stage1(data, env_cfg, cfg, run_dir, **kwargs):
+    def fake_train_stage1(data, env_cfg, cfg, run_dir, go_states=None, **kwargs):
+        assert go_states is None  # the sample's params start no episode at the go (env.go_starts.prob 0)
         calls.append(kwargs)
         return answers.pop(0)
 
@@ -76,3 +77,18 @@ def test_train_seed_pauses_in_stage_2_and_resumes_without_retraining_stage_1(tra
     stage_main(stages.run_train_seed, argv=argv + ["--resume"])
     assert len(calls) == 1, "a finished stage 1 must not be trained (or rewritten) again"
     assert stage2 == [(1, False), (1, True)]
+
+
+def test_go_starts_record_the_chains_balance_policy_at_the_go():
+    """With env.go_starts on, the training stages hand the trainer stands of params.yaml's balance.out."""
+    import dataclasses
+    from pathlib import Path
+
+    from pipeline.config import load_params
+
+    params = load_params(Path(__file__).resolve().parent.parent / "params.yaml")
+    go = dataclasses.replace(params.env.go_starts, prob=0.5, stands=2, stand_s=0.4)
+    params = dataclasses.replace(params, env=dataclasses.replace(params.env, go_starts=go))
+    states = stages._go_states(params)
+    assert states["qpos"].shape[1] == 34 and 1 <= len(states["qpos"]) <= 2
+    assert abs(states["qpos"][0, 2]) < 0.05  # relative to the stance's root: a nominal stand stays near it
