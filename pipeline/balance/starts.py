@@ -6,7 +6,8 @@ range and keeps the states from its last landing keyframe to the end of its phas
 `--at-handoff` instead runs each export's whole chain (`ChainRunner`, from the stance at rest) and keeps
 the state the balance policy is handed, nominal and under the paper's randomisation: a task's own
 catches, for a balance policy fine-tuned on them. Every state is moved onto flat ground (the balance
-env has no terrain): the pelvis keeps its height above the ground under it. States already past the
+env has no terrain): the pelvis keeps its height above the ground under it (a handoff: above the ground
+the reference ends on, where a robot still in the air will land). States already past the
 balance env's fall checks are left out: no policy starts there.
 
     python -m pipeline.balance.starts models/pretrained/far_jump/export models/pretrained/jump_step_down/export \
@@ -23,7 +24,7 @@ import numpy as np
 from pipeline.common.atomic import atomic_file
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs.falls import fall_flags
-from pipeline.export.chain import ground_height_under
+from pipeline.export.chain import end_ground, ground_height_under
 from pipeline.export.policy_step import projected_gravity
 
 
@@ -61,10 +62,12 @@ def record_end_states(export_dir: str | Path, psi_values, *, every: int = 3, max
     return {k: np.asarray(v) for k, v in rows.items()}
 
 
-def _on_flat_ground(model, qpos: np.ndarray, max_tilt: float, min_height: float) -> np.ndarray | None:
-    """`qpos` at the origin of flat ground, the pelvis as high above it as it was; None past a fall check."""
+def _on_flat_ground(model, qpos: np.ndarray, max_tilt: float, min_height: float,
+                    ground: float | None = None) -> np.ndarray | None:
+    """`qpos` at the origin of flat ground, the pelvis as high above it as it was above `ground` (None: the
+    ground under the pelvis); None past a fall check."""
     qpos = qpos.copy()
-    qpos[2] -= ground_height_under(model, qpos[0], qpos[1])
+    qpos[2] -= ground_height_under(model, qpos[0], qpos[1]) if ground is None else ground
     by_tilt, by_height = fall_flags(projected_gravity(qpos[3:7])[:2], qpos[2], max_tilt, min_height)
     if by_tilt or by_height:
         return None
@@ -92,12 +95,16 @@ def record_handoff_states(export_dir: str | Path, psi_values, *, randomized_per_
 
             def keep(model, data, info):
                 if info["stretch"] == "task":
-                    last.update(model=model, qpos=data.qpos.copy(), qvel=data.qvel.copy(), phase=info["phase"])
+                    last.update(model=model, qpos=data.qpos.copy(), qvel=data.qvel.copy(), phase=info["phase"],
+                                targets=info["keyframe_targets"])
 
             result = runner.run(float(psi), on_step=keep, randomize=randomize if draw else None)
             if result.ended_in != "balance" or not last:  # fell in the task: nothing was handed over
                 continue
-            qpos = _on_flat_ground(last["model"], last["qpos"], max_tilt, min_height)
+            # a handoff at the landing may come with the robot still over a gap or a ledge: it lands on the
+            # ground the reference ends on, not on the floor of the gap under its pelvis
+            qpos = _on_flat_ground(last["model"], last["qpos"], max_tilt, min_height,
+                                   ground=end_ground(last["model"], last["targets"]))
             if qpos is not None:
                 rows["qpos"].append(qpos)
                 rows["qvel"].append(last["qvel"])
