@@ -7,7 +7,9 @@ model (`pipeline/balance/go_states.py` records such states). With `prob` > 0 tha
 t = 0 begins in one of them instead, placed at the task's stance (its position and heading), and the
 robot's odometry counts from there, as the chain's does from the pose at the go. Stage 2 keeps them
 (they are starts at t = 0); the evaluate stage's batch does not (it scores from the stance), the chains
-do by construction.
+do by construction. The training stages do not list the balance export among their DVC dependencies (a
+task with go starts off, the sample's default, must not retrain when the balance policy changes): after a
+new `balance.out`, force a task that uses go starts (`dvc repro -f -s train_stage1@<task>-<variant>`).
 """
 
 from __future__ import annotations
