@@ -13,6 +13,7 @@ Stands that fall are left out.
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import mujoco
@@ -32,7 +33,7 @@ def record_go_states(balance_export: str | Path, stands: int, *, stand_s: float 
 
     from pipeline.envs.config import RandomizationConfig
     from pipeline.evaluation.chain_eval import model_randomizer
-    from pipeline.export.chain import DelayedTargets, balance_fallen
+    from pipeline.export.chain import DelayedTargets, balance_fallen, control_step
     from pipeline.export.policy_step import PolicyStepper
     from pipeline.export.sim2sim import RobotState, build_scene, load_exported
 
@@ -44,41 +45,31 @@ def record_go_states(balance_export: str | Path, stands: int, *, stand_s: float 
     decimation = int(round(meta["control_dt"] / meta["sim_dt"]))
     steps = int(round(stand_s / float(meta["control_dt"])))
     randomize = model_randomizer(RandomizationConfig())
+    joints = [nominal.joint(n).id for n in meta["joint_names"]]
+    qpos_adr, dof_adr = nominal.jnt_qposadr[joints], nominal.jnt_dofadr[joints]
+    actuators = np.array([nominal.actuator(n).id for n in meta["joint_names"]])
+    stance_height = float(meta["stance"]["root_height"])
     rows = {"qpos": [], "qvel": []}
     with torch.random.fork_rng():
         torch.manual_seed(seed)
         for stand in range(stands):
-            model = _copy_model(nominal)
+            model = copy.deepcopy(nominal)
             delay = DelayedTargets(randomize(model) if stand else 0.0, model.opt.timestep)
             data = mujoco.MjData(model)
-            joints = [model.joint(n).id for n in meta["joint_names"]]
-            state = RobotState(model, data, model.jnt_qposadr[joints], model.jnt_dofadr[joints])
-            actuators = np.array([model.actuator(n).id for n in meta["joint_names"]])
-            data.qpos[2], data.qpos[3], data.qpos[7:] = float(meta["stance"]["root_height"]), 1.0, meta["default_joint_pos"]
+            state = RobotState(model, data, qpos_adr, dof_adr)
+            data.qpos[2], data.qpos[3], data.qpos[7:] = stance_height, 1.0, meta["default_joint_pos"]
             mujoco.mj_forward(model, data)
             delay.hold(data.qpos[7:])
             stepper.reset()
-            fell = None
             for _ in range(steps):
-                out = stepper.step(base_ang_vel=state.base_ang_vel(), projected_gravity=state.projected_gravity(),
-                                   joint_pos=state.joint_pos(), joint_vel=state.joint_vel(), psi=0.0)
-                delay.send(out.joint_targets)
-                for _ in range(decimation):
-                    data.ctrl[actuators] = delay.applied()
-                    mujoco.mj_step(model, data)
-                fell = balance_fallen(model, data.qpos, meta["terminations"])
-                if fell is not None:
-                    break
-            if fell is None:
-                rows["qpos"].append(data.qpos.copy())
-                rows["qpos"][-1][2] -= float(meta["stance"]["root_height"])
+                control_step(stepper, state, delay, actuators, decimation, psi=0.0)
+                if balance_fallen(model, data.qpos, meta["terminations"]) is not None:
+                    break  # a fallen stand is no start
+            else:
+                qpos = data.qpos.copy()
+                qpos[2] -= stance_height
+                rows["qpos"].append(qpos)
                 rows["qvel"].append(data.qvel.copy())
     if not rows["qpos"]:
         raise PipelineInputError(balance_export, None, f"the balance policy fell in every one of {stands} stands")
     return {k: np.asarray(v) for k, v in rows.items()}
-
-
-def _copy_model(model: mujoco.MjModel) -> mujoco.MjModel:
-    import copy
-
-    return copy.deepcopy(model)

@@ -179,6 +179,18 @@ class DelayedTargets:
         return self.sent[0][1]
 
 
+def control_step(stepper, state, delay: DelayedTargets, actuators, decimation: int, **extra):
+    """One control step in MuJoCo: `stepper`'s policy on the measured `state` (a sim2sim RobotState), its joint
+    targets through the motors' `delay`, `decimation` physics substeps. Returns the policy's output."""
+    out = stepper.step(base_ang_vel=state.base_ang_vel(), projected_gravity=state.projected_gravity(),
+                       joint_pos=state.joint_pos(), joint_vel=state.joint_vel(), **extra)
+    delay.send(out.joint_targets)
+    for _ in range(decimation):
+        state.data.ctrl[actuators] = delay.applied()
+        mujoco.mj_step(state.model, state.data)
+    return out
+
+
 class ChainRunner:
     """The chain of one export in MuJoCo (see the module docstring)."""
 
@@ -222,12 +234,7 @@ class ChainRunner:
         counter = {"step": 0}
 
         def advance(stepper, stretch: str, **extra) -> object:
-            out = stepper.step(base_ang_vel=state.base_ang_vel(), projected_gravity=state.projected_gravity(),
-                               joint_pos=state.joint_pos(), joint_vel=state.joint_vel(), **extra)
-            delay.send(out.joint_targets)
-            for _ in range(self.task.decimation):
-                data.ctrl[actuators] = delay.applied()
-                mujoco.mj_step(model, data)
+            out = control_step(stepper, state, delay, actuators, self.task.decimation, **extra)
             counter["step"] += 1
             steps[stretch] += 1
             if on_step is not None:
