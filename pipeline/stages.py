@@ -141,19 +141,21 @@ def _go_states(params: PipelineConfig) -> dict | None:
 def run_train_stage2(params: PipelineConfig, args) -> None:
     """Stage 2: phase and tracking adapters on the frozen stage-1 policy (if the variant has one)."""
     model_dir = paths.model_dir(args.task, args.variant)
-    _finish_training(_train_stage2_into(params, args, _train_config(params, args.variant), model_dir,
-                                        resume=args.resume))
+    cfg = _train_config(params, args.variant)
+    go_states = _go_states(params) if cfg.variant_spec.stage2 else None
+    _finish_training(_train_stage2_into(params, args, cfg, model_dir, resume=args.resume, go_states=go_states))
 
 
-def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resume: bool = False) -> dict:
-    """Stage 2 on `model_dir`/stage1/policy into `model_dir`/final."""
+def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resume: bool = False,
+                       go_states: dict | None = None) -> dict:
+    """Stage 2 on `model_dir`/stage1/policy into `model_dir`/final (`go_states`: `_go_states(params)`)."""
     from pipeline.rl.training import train_stage2
 
     final = model_dir / "final"
     if cfg.variant_spec.stage2:
         data = _tracking_data(params, args.task, args.variant)
         return train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy", resume=resume,
-                            chunk_s=_chunk_s(args), go_states=_go_states(params))
+                            chunk_s=_chunk_s(args), go_states=go_states)
     # One-stage variants: their final policy is the stage-1 policy, copied so later stages
     # read every variant from the same place.
     with atomic_dir(final) as staging:
@@ -180,16 +182,17 @@ def run_train_seed(params: PipelineConfig, args) -> None:
     cfg = dataclasses.replace(_train_config(params, args.variant), seed=seed)
     model_dir = paths.seed_model_dir(args.task, args.variant, seed)
     stage1_dir = model_dir / "stage1"
+    go_states = _go_states(params)  # recorded once for both stages
     if args.resume and (stage1_dir / "metrics.json").is_file() and (stage1_dir / "policy" / "config.json").is_file():
         # stage 1 finished in an earlier chunk: resuming it would rewrite the policy stage 2 trains on
         stage1 = json.loads((stage1_dir / "metrics.json").read_text())
     else:
         data = _tracking_data(params, args.task, args.variant)
         stage1 = train_stage1(data, params.env, cfg, stage1_dir, resume=args.resume, chunk_s=_chunk_s(args),
-                              go_states=_go_states(params))
+                              go_states=go_states)
         if stage1.get("paused"):
             _finish_training(stage1)
-    final = _train_stage2_into(params, args, cfg, model_dir, resume=args.resume)
+    final = _train_stage2_into(params, args, cfg, model_dir, resume=args.resume, go_states=go_states)
     _finish_training({"seed": seed, "stage1": stage1, "final": final, "paused": bool(final.get("paused"))})
 
 

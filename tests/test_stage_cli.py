@@ -61,8 +61,8 @@ def test_train_seed_pauses_in_stage_2_and_resumes_without_retraining_stage_1(tra
     monkeypatch.setattr(stages.paths, "seed_model_dir", lambda task, variant, seed: tmp_path / str(seed))
     stage2 = []
     monkeypatch.setattr(stages, "_train_stage2_into",
-                        lambda params, args, cfg, model_dir, resume=False: stage2.append((cfg.seed, resume))
-                        or stage2_answers.pop(0))
+                        lambda params, args, cfg, model_dir, resume=False, go_states=None:
+                        stage2.append((cfg.seed, resume)) or stage2_answers.pop(0))
     stage2_answers = [{"paused": True}, {"iterations": 150}]
     answers.append({"iterations": 280})
     argv = ["--task", "far_jump_sample", "--variant", "adamimic", "--seed", "1", "--chunk-minutes", "1"]
@@ -92,3 +92,17 @@ def test_go_starts_record_the_chains_balance_policy_at_the_go():
     states = stages._go_states(params)
     assert states["qpos"].shape[1] == 34 and 1 <= len(states["qpos"]) <= 2
     assert abs(states["qpos"][0, 2]) < 0.05  # relative to the stance's root: a nominal stand stays near it
+
+
+def test_train_seed_records_the_go_states_once_for_both_stages(monkeypatch, tmp_path):
+    """Stage 1 and stage 2 of a seed run start at the same go states, recorded once (a few seconds of stands)."""
+    recorded, seen = [], []
+    monkeypatch.setattr(stages, "_go_states", lambda params: recorded.append(1) or {"qpos": "the stands"})
+    monkeypatch.setattr(stages, "_tracking_data", lambda params, task, variant: None)
+    monkeypatch.setattr(stages.paths, "seed_model_dir", lambda task, variant, seed: tmp_path / str(seed))
+    import pipeline.rl.training as trainer
+
+    monkeypatch.setattr(trainer, "train_stage1", lambda *a, go_states=None, **k: seen.append(go_states) or {})
+    monkeypatch.setattr(trainer, "train_stage2", lambda *a, go_states=None, **k: seen.append(go_states) or {})
+    stage_main(stages.run_train_seed, argv=["--task", "far_jump_sample", "--variant", "adamimic", "--seed", "1"])
+    assert recorded == [1] and seen == [{"qpos": "the stands"}] * 2
