@@ -82,6 +82,39 @@ def test_parity_and_metadata(exported):
     np.testing.assert_allclose(np.array(beside["keyframes"]["offsets"])[:, 1, 0], grid - 1.0, atol=1e-12)
 
 
+
+class LargeOutputs(nn.Module):
+    """A stand-in whose raw actions reach the hundreds on the parity check's inputs, as a trained balance
+    policy's do (156 measured): float32 rounds those to about 1e-4 absolute."""
+
+    def __init__(self, obs_dim, action_dim=27, gain=300.0):
+        super().__init__()
+        self.actor = nn.Sequential(nn.Linear(obs_dim, 256), nn.ELU(), nn.Linear(256, action_dim))
+        self.gain = gain
+
+    def forward(self, obs):
+        return self.gain * self.actor(obs), torch.zeros(obs.shape[0])
+
+
+def test_parity_scales_with_the_output_and_still_refuses_a_different_graph(exported, tmp_path):
+    module, layout, meta, _ = exported
+    cfg = load_robot_config()
+    torch.manual_seed(0)
+    large = DeployedPolicy(LargeOutputs(layout["dim"]), cfg.default_joint_pos, cfg.action_scale)
+    result = export_folder(large, layout["dim"], meta, tmp_path / "large")
+    assert parity(large, result.onnx, layout["dim"], scaled=True) < 1e-5 < result.parity_max_abs_diff
+    # the graph of another network: refused at any output size, and nothing is written
+    with pytest.raises(RuntimeError, match="ONNX parity failed"):
+        import pipeline.export.onnx_export as onnx_export
+
+        real = onnx_export.export_onnx
+        onnx_export.export_onnx = lambda m, *a, **k: real(module, *a, **k)
+        try:
+            export_folder(large, layout["dim"], meta, tmp_path / "wrong")
+        finally:
+            onnx_export.export_onnx = real
+    assert not (tmp_path / "wrong").exists()
+
 def test_sim2sim_runs_a_few_steps(exported):
     _, _, _, result = exported
     runner = Sim2Sim(result.folder, task="far_jump", robot="unitree_g1")
