@@ -16,7 +16,7 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.envs.feedforward import zero_action_targets
 from pipeline.envs.own_states import OwnStateRing
 from pipeline.envs.start_frames import StartFrameSampler, allowed_start_frames
-from pipeline.envs.torch_math import projected_gravity, quat_conjugate, quat_mul, quat_rotate_inverse
+from pipeline.envs.torch_math import projected_gravity, quat_conjugate, quat_mul, quat_rotate_inverse, yaw_quat
 from pipeline.keyframes.tracking_data import TrackingData
 
 
@@ -73,6 +73,7 @@ class TrackingReference:
             self.push_table = self._tensor(prior.joint_offsets)  # (T, J) at w = 1
             self.push_weight = self._tensor(prior.weight(d.psi))  # (S,)
         self.ref_gravity_xy = projected_gravity(self.ref_root_quat)[:, :2].contiguous()  # for the tilt check
+        self.start_heading_quat = yaw_quat(self.ref_root_quat[0])  # (4,): where episodes count odometry from
         root_q = self.ref_root_quat[:, None].expand(-1, m.body_pos.shape[1], -1)
         self.ref_local_pos = quat_rotate_inverse(root_q, self.ref_body_pos - self.ref_root_pos[:, None])
         self.ref_local_quat = quat_mul(quat_conjugate(root_q), self.ref_body_quat)

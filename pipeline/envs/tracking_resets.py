@@ -80,7 +80,7 @@ class TrackingResets:
         if self.go_states is not None:  # off: no draw, as above
             at_go = ((frame == 0) & (torch.rand(n, device=dev) < self.cfg.go_starts.prob)).nonzero().squeeze(-1)
             stance = self.ref_root_pos[0] + self.offset_table[sample[at_go], 0]
-            go_qpos, go_qvel = self.go_states.place(at_go.numel(), stance, yaw_quat(self.ref_root_quat[0]))
+            go_qpos, go_qvel = self.go_states.place(at_go.numel(), stance, self.start_heading_quat)
             qpos, qvel = qpos.clone(), qvel.clone()
             qpos[at_go], qvel[at_go] = go_qpos.to(qpos.dtype), go_qvel.to(qvel.dtype)
         own, restart = None, None
@@ -111,7 +111,7 @@ class TrackingResets:
         self.next_kf[ids] = torch.searchsorted(self.kf_frames, frame, right=True)
         self._restart_episodes(ids, qvel[:, 6:])
         self.odom_origin[ids] = self.ref_root_pos[0] + self.offset_table[sample, 0]
-        self.odom_origin_quat[ids] = yaw_quat(self.ref_root_quat[0])
+        self.odom_origin_quat[ids] = self.start_heading_quat
         if at_go is not None and at_go.numel():  # a chain's odometry counts from the pose at the go
             self.odom_origin[ids[at_go]] = qpos[at_go, 0:3].to(self.odom_origin.dtype)
             self.odom_origin_quat[ids[at_go]] = yaw_quat(qpos[at_go, 3:7]).to(self.odom_origin_quat.dtype)
