@@ -62,3 +62,22 @@ def test_a_malformed_figures_file_names_the_key(tmp_path):
     bad.write_text(yaml.safe_dump({"main_simulation": {"columns": ["success"], "rows": {}}}))
     with pytest.raises(PipelineInputError, match="main_simulation.columns"):
         paper_section({}, bad)
+
+
+def test_the_chain_table_keeps_its_rows_together_and_the_endings_below(tmp_path):
+    """Two chained variants: a line between their rows would end the markdown table after the first."""
+    from pipeline.evaluation.report import rest_to_rest_table
+
+    docs = {}
+    for variant in ("adamimic", "adamimic_stage1"):
+        doc = _metrics(90.0, 150.0)
+        for r in doc["ranges"].values():
+            r["rest_to_rest"] = {"mean": 0.0}
+        doc["chain"] = {"endings": {"task:tilt": 64}}
+        docs[variant] = doc
+    lines = rest_to_rest_table(docs, {}).splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("| adamimic |"))
+    assert lines[first + 1].startswith("| adamimic_stage1 |")
+    assert [line for line in lines[first + 2:] if "where the chains ended" in line] == [
+        "adamimic, where the chains ended (stretch:check, episodes): task:tilt 64",
+        "adamimic_stage1, where the chains ended (stretch:check, episodes): task:tilt 64"]

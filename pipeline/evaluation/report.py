@@ -185,15 +185,15 @@ def rest_to_rest_table(docs: dict[str, dict], randomised: dict[str, dict]) -> st
         success = r.get("chain_success", r.get("success", {})).get("mean", float("nan"))  # metrics_dr.json: the chain's own
         return f"{r['rest_to_rest']['mean']:.1f} ({success:.0f} / {r.get('standing', {}).get('mean', float('nan')):.0f})"
 
+    endings = []  # below the table: a line between its rows would end it
     for variant, doc in chained.items():
         lines.append(f"| {variant} | " + " | ".join(cell(doc, g) for g in groups) + " | " +
                      " | ".join(cell(randomised.get(variant), g) for g in groups) + " |")
-        endings = doc.get("chain", {}).get("endings")
-        if endings:
-            lines.append("")
-            lines.append(f"{variant}, where the chains ended (stretch:check, episodes): " +
-                         ", ".join(f"{k} {v}" for k, v in endings.items()))
-    return "\n".join(lines) + "\n"
+        ended = doc.get("chain", {}).get("endings")
+        if ended:
+            endings.append(f"\n{variant}, where the chains ended (stretch:check, episodes): " +
+                           ", ".join(f"{k} {v}" for k, v in ended.items()))
+    return "\n".join(lines + endings) + "\n"
 
 
 def funnel_table(variant: str, rows: list[dict]) -> str:
