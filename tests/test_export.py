@@ -96,7 +96,9 @@ class LargeOutputs(nn.Module):
         return self.gain * self.actor(obs), torch.zeros(obs.shape[0])
 
 
-def test_parity_scales_with_the_output_and_still_refuses_a_different_graph(exported, tmp_path):
+def test_parity_scales_with_the_output_and_still_refuses_a_different_graph(exported, tmp_path, monkeypatch):
+    import pipeline.export.onnx_export as onnx_export
+
     module, layout, meta, _ = exported
     cfg = load_robot_config()
     torch.manual_seed(0)
@@ -104,16 +106,12 @@ def test_parity_scales_with_the_output_and_still_refuses_a_different_graph(expor
     result = export_folder(large, layout["dim"], meta, tmp_path / "large")
     assert parity(large, result.onnx, layout["dim"], scaled=True) < 1e-5 < result.parity_max_abs_diff
     # the graph of another network: refused at any output size, and nothing is written
+    real = onnx_export.export_onnx
+    monkeypatch.setattr(onnx_export, "export_onnx", lambda m, *a, **k: real(module, *a, **k))
     with pytest.raises(RuntimeError, match="ONNX parity failed"):
-        import pipeline.export.onnx_export as onnx_export
-
-        real = onnx_export.export_onnx
-        onnx_export.export_onnx = lambda m, *a, **k: real(module, *a, **k)
-        try:
-            export_folder(large, layout["dim"], meta, tmp_path / "wrong")
-        finally:
-            onnx_export.export_onnx = real
+        export_folder(large, layout["dim"], meta, tmp_path / "wrong")
     assert not (tmp_path / "wrong").exists()
+
 
 def test_sim2sim_runs_a_few_steps(exported):
     _, _, _, result = exported

@@ -176,19 +176,24 @@ def read_onnx_metadata(path: str | Path) -> dict:
     return {k: json.loads(v) for k, v in meta.items()}
 
 
-def parity(module: DeployedPolicy, onnx_path: str | Path, obs_dim: int, num: int = 256, seed: int = 0,
-           scaled: bool = False) -> float:
-    """Max abs difference over all outputs between torch and onnxruntime on random observations; `scaled`:
-    each sample's differences over max(1, its largest torch output), the size float32 rounds at."""
+def parity_errors(module: DeployedPolicy, onnx_path: str | Path, obs_dim: int, num: int = 256,
+                  seed: int = 0) -> tuple[float, float]:
+    """Torch against onnxruntime on random observations, over all outputs: (the max abs difference, the max of
+    each sample's differences over max(1, its largest torch output), the size float32 rounds at)."""
     rng = np.random.default_rng(seed)
     obs = rng.normal(0.0, 2.0, size=(num, obs_dim)).astype(np.float32)
     with torch.no_grad():
         ref = [t.numpy() for t in module.eval().cpu()(torch.from_numpy(obs))]
     got = onnx_session(onnx_path).run(list(OUTPUT_NAMES), {INPUT_NAME: obs})
-    def size(a):
-        return np.maximum(1.0, np.abs(a.reshape(num, -1)).max(-1)) if scaled else 1.0
+    per_sample = [(np.abs(a - b).reshape(num, -1).max(-1), np.maximum(1.0, np.abs(a).reshape(num, -1).max(-1)))
+                  for a, b in zip(ref, got)]
+    return float(max(d.max() for d, _ in per_sample)), float(max((d / size).max() for d, size in per_sample))
 
-    return float(max(np.max(np.abs(a - b).reshape(num, -1).max(-1) / size(a)) for a, b in zip(ref, got)))
+
+def parity(module: DeployedPolicy, onnx_path: str | Path, obs_dim: int, num: int = 256, seed: int = 0,
+           scaled: bool = False) -> float:
+    """One of `parity_errors`: the max abs difference, or with `scaled` the difference at the output's size."""
+    return parity_errors(module, onnx_path, obs_dim, num, seed)[int(scaled)]
 
 
 @dataclass(frozen=True)
@@ -213,8 +218,7 @@ def export_folder(module: DeployedPolicy, obs_dim: int, metadata: dict, out_dir:
             raise PipelineInputError(source_dir, missing[0], "missing from the trained policy folder")
     with atomic_dir(out_dir) as staging:
         onnx_path = export_onnx(module, obs_dim, staging / ONNX_NAME, metadata)
-        diff = parity(module, onnx_path, obs_dim)
-        scaled = parity(module, onnx_path, obs_dim, scaled=True)
+        diff, scaled = parity_errors(module, onnx_path, obs_dim)
         if not scaled < PARITY_TOLERANCE:
             raise RuntimeError(f"ONNX parity failed: max difference {scaled:.3g} (of max(1, the largest output)) >= "
                                f"{PARITY_TOLERANCE}; max abs diff {diff:.3g}")
