@@ -97,6 +97,15 @@ def _tracking_data(params: PipelineConfig, task: str, variant: str):
     return data
 
 
+def _evaluation_data(params: PipelineConfig, task: str, variant: str):
+    """What a variant is judged on: D_edit's keyframes (ψ moves them, whatever the variant tracked), with the zero
+    action it trained with (no push prior for the one that tracked the unedited motion)."""
+    data = _tracking_data(params, task, "adamimic")
+    if _train_config(params, variant).variant_spec.reference == "original":
+        data.push_prior = None
+    return data
+
+
 def _chunk_s(args) -> float | None:
     """`--chunk-minutes` in seconds (None: train to the end in one go)."""
     minutes = getattr(args, "chunk_minutes", None)
@@ -200,7 +209,7 @@ def run_evaluate(params: PipelineConfig, args) -> None:
     """Evaluate a trained variant on the easy and hard psi ranges: metrics, per-psi plots, videos."""
     from pipeline.evaluation.run import evaluate_variant
 
-    data = _tracking_data(params, args.task, "adamimic")  # evaluation always targets D_edit keyframes
+    data = _evaluation_data(params, args.task, args.variant)
     model_dir, out_dir = paths.model_dir(args.task, args.variant), paths.results_dir(args.task, args.variant)
     if args.seed is not None:  # an extra seed's policy (evaluate_seed): its metrics, no videos
         seed = _extra_seed(params, args)
@@ -231,7 +240,7 @@ def run_export(params: PipelineConfig, args) -> None:
     """Export the deployed policy (stage 1 + adapters) to ONNX + metadata in hub format."""
     from pipeline.export.onnx_export import export_variant
 
-    data = _tracking_data(params, args.task, "adamimic")
+    data = _evaluation_data(params, args.task, args.variant)
     model_dir = paths.model_dir(args.task, args.variant)
     result = export_variant(task=args.task, variant=args.variant, data=data, policy_dir=model_dir / "final" / "policy",
                             out_dir=model_dir / "export", env_cfg=params.env, balance_export=balance_export(params),

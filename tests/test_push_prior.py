@@ -231,12 +231,13 @@ def test_a_policy_trained_without_the_prior_is_refused_where_the_task_has_one():
 
 def test_the_stage_writes_the_prior_and_the_edited_variants_train_with_it(tmp_path, monkeypatch, sample_data):
     """`push_prior` stage on the sample's D_edit (a tiny search), then what train/evaluate/export load:
-    the prior for variants that track the edit, none for the one that tracks the unedited clip."""
+    the prior for variants that track the edit, none for the one that tracks the unedited clip, which is
+    still judged on the edited keyframes."""
     import argparse
     from pipeline import paths
     from pipeline.config import load_params
     from pipeline.keyframes.datasets import write_tracking_dataset
-    from pipeline.stages import _tracking_data, run_push_prior
+    from pipeline.stages import _evaluation_data, _tracking_data, run_push_prior
 
     params = load_params(REPO_ROOT / "params.yaml")
     task = params.tasks["far_jump_sample"]
@@ -254,6 +255,12 @@ def test_the_stage_writes_the_prior_and_the_edited_variants_train_with_it(tmp_pa
     edited = _tracking_data(params, "far_jump_sample", "adamimic")
     assert edited.push_prior is not None and edited.push_prior.joint_offsets.shape[0] == edited.motion.num_frames
     assert _tracking_data(params, "far_jump_sample", "deepmimic_noadapt").push_prior is None
+    # Evaluation judges every variant on the edited keyframes, with the zero action it trained with.
+    judged = _evaluation_data(params, "far_jump_sample", "deepmimic_noadapt")
+    assert judged.push_prior is None
+    np.testing.assert_array_equal(judged.keyframe_offsets, edited.keyframe_offsets)
+    assert np.abs(judged.keyframe_offsets).max() > 0
+    assert _evaluation_data(params, "far_jump_sample", "deepmimic_adapt").push_prior is not None
 
 
 FAR_JUMP = REPO_ROOT.parent / "shared" / "data" / "adamimic_smpl" / "far_jump.npz"
