@@ -191,9 +191,11 @@ def run_train_seed(params: PipelineConfig, args) -> None:
     cfg = dataclasses.replace(_train_config(params, args.variant), seed=seed)
     model_dir = paths.seed_model_dir(args.task, args.variant, seed)
     stage1_dir = model_dir / "stage1"
-    go_states = _go_states(params)  # recorded once for both stages
-    if args.resume and (stage1_dir / "metrics.json").is_file() and (stage1_dir / "policy" / "config.json").is_file():
-        # stage 1 finished in an earlier chunk: resuming it would rewrite the policy stage 2 trains on
+    # stage 1 finished in an earlier chunk: resuming it would rewrite the policy stage 2 trains on
+    stage1_done = args.resume and (stage1_dir / "metrics.json").is_file() and (stage1_dir / "policy" / "config.json").is_file()
+    # recorded once for both stages, and not at all when neither trains
+    go_states = _go_states(params) if not stage1_done or cfg.variant_spec.stage2 else None
+    if stage1_done:
         stage1 = json.loads((stage1_dir / "metrics.json").read_text())
     else:
         data = _tracking_data(params, args.task, args.variant)

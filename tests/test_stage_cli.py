@@ -106,3 +106,19 @@ def test_train_seed_records_the_go_states_once_for_both_stages(monkeypatch, tmp_
     monkeypatch.setattr(trainer, "train_stage2", lambda *a, go_states=None, **k: seen.append(go_states) or {})
     stage_main(stages.run_train_seed, argv=["--task", "far_jump_sample", "--variant", "adamimic", "--seed", "1"])
     assert recorded == [1] and seen == [{"qpos": "the stands"}] * 2
+
+
+def test_a_resumed_seed_run_with_nothing_left_to_train_records_no_go_states(monkeypatch, tmp_path):
+    """Stage 1 done in an earlier chunk and a variant without stage 2: nothing starts at the go states, so no
+    stands are run to record them; the one-stage copy is still made."""
+    recorded = []
+    monkeypatch.setattr(stages, "_go_states", lambda params: recorded.append(1) or {"qpos": "the stands"})
+    monkeypatch.setattr(stages.paths, "seed_model_dir", lambda task, variant, seed: tmp_path / str(seed))
+    stage1 = tmp_path / "1" / "stage1"
+    (stage1 / "policy").mkdir(parents=True)
+    (stage1 / "policy" / "config.json").write_text("{}")
+    (stage1 / "metrics.json").write_text('{"success": 0.5}')
+    stage_main(stages.run_train_seed, argv=["--task", "far_jump_sample", "--variant", "adamimic_stage1", "--seed", "1",
+                                            "--resume"])
+    assert recorded == []
+    assert (tmp_path / "1" / "final" / "policy" / "config.json").is_file()
