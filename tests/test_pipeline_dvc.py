@@ -256,3 +256,49 @@ def test_extra_seeds_train_evaluate_and_reach_the_report(tmp_path):
     assert "train_seed@far_jump_sample-adamimic-5" in status and target in status
     assert "train_stage1@" not in status and "train_seed@far_jump_sample-adamimic-3" not in status
 
+
+
+def _experiments(node, found=None) -> dict:
+    """{experiment name: its metrics files} from `dvc exp show --json`, at any depth of its tree."""
+    found = {} if found is None else found
+    if isinstance(node, list):
+        for item in node:
+            _experiments(item, found)
+    elif isinstance(node, dict):
+        data = node.get("data")
+        if node.get("name") and isinstance(data, dict) and data.get("metrics"):
+            found[node["name"]] = data["metrics"]
+        for key in ("experiments", "revs"):
+            _experiments(node.get(key), found)
+    return found
+
+
+@pytest.mark.slow
+def test_a_variant_sweep_runs_from_the_dvc_queue(tmp_path):
+    """The paper's comparison as a user sweeps it: one queued experiment per variant (`-S 'variants=choice(…)'`),
+    run by `dvc queue start` in DVC's own clean copies of the repository (the robot model, fetched at set-up and
+    not tracked, goes in with `--copy-paths`); each experiment evaluates its variant (bundled sample, tiny sizes)."""
+    import time
+
+    repo = tmp_path / "repo"
+    _copy_repo(repo)
+    _write_params(repo / "params.yaml", lambda raw: (_tiny(raw), raw.update(extra_seeds=[]),
+                                                     raw["tasks"]["far_jump_sample"].update(num_samples=4)))
+    log = _dvc(repo, "exp", "run", "--queue", "--copy-paths", "robots/g1/vendor",
+               "-S", "variants=choice([adamimic_stage1],[deepmimic_adapt])", "report@far_jump_sample")
+    assert log.count("Queued experiment") == 2
+    _dvc(repo, "queue", "start", "-j", "1")
+    deadline = time.monotonic() + 1200
+    while True:
+        status = _dvc(repo, "queue", "status")
+        if not any(word in status for word in ("Queued", "Running")):
+            break
+        assert time.monotonic() < deadline, status
+        time.sleep(5)
+    assert status.count("Success") == 2, status
+
+    runs = _experiments(json.loads(_dvc(repo, "exp", "show", "--json")))
+    evaluated = {variant for metrics in runs.values() for path in metrics
+                 for variant in ("adamimic_stage1", "deepmimic_adapt")
+                 if path == f"results/far_jump_sample/{variant}/metrics.json"}
+    assert evaluated == {"adamimic_stage1", "deepmimic_adapt"}, sorted(runs)
