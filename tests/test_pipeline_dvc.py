@@ -1,6 +1,6 @@
 """The pipeline as users drive it: params validation at the first stage, a new task added in
 params.yaml only and built by `dvc repro`, caching (second repro does nothing, a task's change
-reruns only that task), and a DVC remote round trip.
+reruns only that task), a DVC remote round trip, and a sweep over variants through DVC's queue.
 
 The end-to-end test runs on a copy of the repository with tiny training/evaluation sizes, so it
 checks the plumbing (every stage of a new task runs and is cached), not the learning.
@@ -255,7 +255,6 @@ def test_extra_seeds_train_evaluate_and_reach_the_report(tmp_path):
     status = _dvc(repo, "status", "--with-deps", target)
     assert "train_seed@far_jump_sample-adamimic-5" in status and target in status
     assert "train_stage1@" not in status and "train_seed@far_jump_sample-adamimic-3" not in status
-
 
 
 def _experiments(node, found=None) -> dict:
