@@ -1,6 +1,7 @@
 """`adamimic view`: the browser viewer serves an export's live chain and a keyframes dataset on a loopback port,
 answers over HTTP, and stops; the live chain stands, goes and hands over."""
 
+import os
 import signal
 import socket
 import subprocess
@@ -24,10 +25,14 @@ def _serves(path, tmp_path):
     port = _free_port()
     log = open(tmp_path / "view.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "view", str(path), "--port", str(port)],
-                            cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+                            cwd=REPO, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
         deadline, body = time.monotonic() + 90, None
         while time.monotonic() < deadline and proc.poll() is None:
+            # the web server answers while the viewer is still loading: wait for the line that says it serves
+            if "adamimic view: serving" not in (tmp_path / "view.log").read_text():
+                time.sleep(0.5)
+                continue
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as reply:
                     body = reply.read().decode(errors="replace")
