@@ -78,8 +78,10 @@ def _train_config(params: PipelineConfig, variant: str):
     return dataclasses.replace(params.train, variant=variant)
 
 
-def _tracking_data(params: PipelineConfig, task: str, variant: str):
-    """The reference a variant tracks: D_edit, D_rule, or the unedited motion (zero offsets)."""
+def _tracking_data(params: PipelineConfig, task: str, variant: str, judged: bool = False):
+    """The reference a variant tracks: D_edit, D_rule, or the unedited motion (zero offsets). `judged`: what it
+    is evaluated on instead, D_edit's keyframes (ψ moves them, whatever the variant tracked) with the zero action
+    it trained with."""
     from pipeline.keyframes.datasets import load_tracking_data
 
     from pipeline.priors.push_prior import load_push_prior
@@ -87,10 +89,11 @@ def _tracking_data(params: PipelineConfig, task: str, variant: str):
 
     reference = _train_config(params, variant).variant_spec.reference
     base = paths.keyframes_dir(task)
-    data = load_tracking_data(base / ("d_rule" if reference == "rule" else "d_edit"))
+    data = load_tracking_data(base / ("d_rule" if reference == "rule" and not judged else "d_edit"))
     if reference == "original":
-        data.keyframe_offsets = data.keyframe_offsets * 0.0
-        data.dense_offsets = None
+        if not judged:
+            data.keyframe_offsets = data.keyframe_offsets * 0.0
+            data.dense_offsets = None
         return data  # the push prior jumps each sample's ψ: meaningless against the unedited motion
     data.push_prior = load_push_prior(paths.push_prior_dir(task), data.motion.num_frames,
                                       load_robot_config().joint_names)
@@ -98,12 +101,8 @@ def _tracking_data(params: PipelineConfig, task: str, variant: str):
 
 
 def _evaluation_data(params: PipelineConfig, task: str, variant: str):
-    """What a variant is judged on: D_edit's keyframes (ψ moves them, whatever the variant tracked), with the zero
-    action it trained with (no push prior for the one that tracked the unedited motion)."""
-    data = _tracking_data(params, task, "adamimic")
-    if _train_config(params, variant).variant_spec.reference == "original":
-        data.push_prior = None
-    return data
+    """What a variant is judged on (`_tracking_data`'s `judged`)."""
+    return _tracking_data(params, task, variant, judged=True)
 
 
 def _chunk_s(args) -> float | None:
@@ -192,7 +191,8 @@ def run_train_seed(params: PipelineConfig, args) -> None:
     model_dir = paths.seed_model_dir(args.task, args.variant, seed)
     stage1_dir = model_dir / "stage1"
     # stage 1 finished in an earlier chunk: resuming it would rewrite the policy stage 2 trains on
-    stage1_done = args.resume and (stage1_dir / "metrics.json").is_file() and (stage1_dir / "policy" / "config.json").is_file()
+    stage1_done = (args.resume and (stage1_dir / "metrics.json").is_file()
+                   and (stage1_dir / "policy" / "config.json").is_file())
     # recorded once for both stages, and not at all when neither trains
     go_states = _go_states(params) if not stage1_done or cfg.variant_spec.stage2 else None
     if stage1_done:
