@@ -133,7 +133,8 @@ def run_train_stage1(params: PipelineConfig, args) -> None:
     data = _tracking_data(params, args.task, args.variant)
     run_dir = paths.model_dir(args.task, args.variant) / "stage1"
     _finish_training(train_stage1(data, params.env, _train_config(params, args.variant), run_dir,
-                                  resume=args.resume, chunk_s=_chunk_s(args), go_states=_go_states(params)))
+                                  resume=args.resume, chunk_s=_chunk_s(args), go_states=_go_states(params),
+                                  handoff=_handoff(params, args.task, data)))
 
 
 def _go_states(params: PipelineConfig) -> dict | None:
@@ -144,6 +145,19 @@ def _go_states(params: PipelineConfig) -> dict | None:
     from pipeline.balance.go_states import record_go_states
 
     return record_go_states(balance_export(params), go.stands, stand_s=go.stand_s, seed=params.train.seed)
+
+
+def _handoff(params: PipelineConfig, task: str, data):
+    """Where the task's chain hands the robot back to the balance policy, for a task paid there
+    (`env.rewards.weights.handoff_catch`), or None: the phase (clip.handoff_after_landing_s) and the balance
+    policy's training checkpoint, whose critic judges the state (params.yaml `balance.out`/train/policy)."""
+    if not params.env.rewards.weights.handoff_catch:
+        return None
+    from pipeline.envs.handoff_catch import Handoff
+    from pipeline.export.chain import handoff_phase
+
+    return Handoff(handoff_phase(data, params.tasks[task].clip.handoff_after_landing_s),
+                   params.path.parent / params.balance.out / "train" / "policy")
 
 
 def run_train_stage2(params: PipelineConfig, args) -> None:
@@ -163,7 +177,7 @@ def _train_stage2_into(params: PipelineConfig, args, cfg, model_dir: Path, resum
     if cfg.variant_spec.stage2:
         data = _tracking_data(params, args.task, args.variant)
         return train_stage2(data, params.env, cfg, final, stage1_dir=model_dir / "stage1" / "policy", resume=resume,
-                            chunk_s=_chunk_s(args), go_states=go_states)
+                            chunk_s=_chunk_s(args), go_states=go_states, handoff=_handoff(params, args.task, data))
     # One-stage variants: their final policy is the stage-1 policy, copied so later stages
     # read every variant from the same place.
     with atomic_dir(final) as staging:
@@ -200,7 +214,7 @@ def run_train_seed(params: PipelineConfig, args) -> None:
     else:
         data = _tracking_data(params, args.task, args.variant)
         stage1 = train_stage1(data, params.env, cfg, stage1_dir, resume=args.resume, chunk_s=_chunk_s(args),
-                              go_states=go_states)
+                              go_states=go_states, handoff=_handoff(params, args.task, data))
         if stage1.get("paused"):
             _finish_training(stage1)
     final = _train_stage2_into(params, args, cfg, model_dir, resume=args.resume, go_states=go_states)

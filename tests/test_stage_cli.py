@@ -12,8 +12,9 @@ def trainer_calls(monkeypatch):
     """Stage 1 stands in: it records its keyword arguments and answers paused or finished."""
     calls, answers = [], []
 
-    def fake_train_stage1(data, env_cfg, cfg, run_dir, go_states=None, **kwargs):
+    def fake_train_stage1(data, env_cfg, cfg, run_dir, go_states=None, handoff=None, **kwargs):
         assert go_states is None  # the sample's params start no episode at the go (env.go_starts.prob 0)
+        assert handoff is None  # nor pay at a handoff (env.rewards.weights.handoff_catch 0)
         calls.append(kwargs)
         return answers.pop(0)
 
@@ -44,6 +45,24 @@ def test_without_chunk_minutes_the_run_is_not_chunked(trainer_calls):
     answers.append({"iterations": 280})
     stage_main(stages.run_train_stage1, argv=["--task", "far_jump_sample", "--variant", "adamimic"])
     assert calls == [{"resume": False, "chunk_s": None}]
+
+
+def test_a_task_paid_at_its_handoff_trains_with_its_chains_handoff_and_catcher():
+    """far_jump_rest's recipe: the handoff at its landing keyframe, judged by balance.out's training checkpoint."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from pipeline.config import load_params
+
+    folder = Path(__file__).resolve().parent.parent / "models/pretrained/far_jump_rest"
+    params = load_params(folder / "params_cpu.yaml")
+    data = SimpleNamespace(task="far_jump_rest", motion=SimpleNamespace(num_frames=126, fps=50.0),
+                           keyframe_frames=[60, 85, 110], keyframe_labels=("takeoff", "landing", ""))
+    handoff = stages._handoff(params, "far_jump_rest", data)
+    assert handoff.phase == pytest.approx(85 / 125)  # clip.handoff_after_landing_s: 0.0
+    assert handoff.balance_checkpoint.resolve() == (folder.parent / "balance_far_jump/train/policy").resolve()
+    assert (handoff.balance_checkpoint / "model.safetensors").is_file()
+    assert stages._handoff(load_params(folder.parent.parent.parent / "params.yaml"), "far_jump_sample", data) is None
 
 
 @pytest.mark.parametrize("minutes", ["0", "-2"])

@@ -45,6 +45,9 @@ class RewardWeights(PenaltyWeights):
     # sparse, when the phase ends alive (0 = off): upright and slow there, where the balance policy takes the
     # robot over (export/chain.py), as skill chaining makes one skill end inside the next one's starting set
     handoff: float = 0.0
+    # sparse, at the chain's handoff (> 0: episodes end there, not at the phase's end): this weight times the
+    # balance policy's own estimate of catching the robot in the state it is handed (envs/handoff_catch.py)
+    handoff_catch: float = 0.0
 
 
 @dataclass

@@ -19,6 +19,7 @@ from pipeline.common.errors import PipelineInputError
 from pipeline.envs import rewards as R
 from pipeline.envs.config import EnvConfig
 from pipeline.envs.go_starts import GoStates
+from pipeline.envs.handoff_catch import Handoff, HandoffCatch
 from pipeline.envs.robot_env import PENALTY_TERMS, RobotEnv
 from pipeline.envs.sampling import SampleSampler
 from pipeline.envs.scene import build_scene, terrain_fields_per_sample
@@ -40,7 +41,7 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
                                                 "odom_origin_quat", "start_frame", "keyframe_missed")
 
     def __init__(self, cfg: EnvConfig, data: TrackingData, *, num_envs: int, backend="cpu", device="cpu",
-                 seed: int = 0, task=None, go_states: dict | None = None):
+                 seed: int = 0, task=None, go_states: dict | None = None, handoff: Handoff | None = None):
         self.data = data
         self.robot = load_robot_config()
         source = f"task {data.task}"
@@ -51,8 +52,18 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
         # All randomness comes from torch's global RNG (seeded by the caller): a trainer that saves
         # and restores it replays the same episodes after a resume. `seed` stays for the contract.
         self.seed = seed
+        # episodes end at the chain's handoff when the task is paid for what the balance policy makes of it there
+        catch_weight = cfg.rewards.weights.handoff_catch
+        if catch_weight and handoff is None:
+            raise PipelineInputError("env", "rewards.weights.handoff_catch", "needs the chain's handoff: the task's "
+                                     "clip.handoff_after_landing_s and the balance policy of params.yaml balance.out")
+        self.end_phase = float(handoff.phase) if catch_weight else 1.0
         self._precompute_reference()
         self._precompute_robot()
+        self.handoff_catch = None
+        if catch_weight:
+            self.handoff_catch = HandoffCatch(handoff.balance_checkpoint, self.default_joint_pos, self.device)
+            self.handoff_ground = self._handoff_ground()
         self.go_states = None  # starts at t = 0 where the balance policy hands over (envs/go_starts.py)
         if cfg.go_starts.prob > 0:
             if go_states is None:
@@ -80,6 +91,17 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
         self._alloc_state()
 
     # ------------------------------------------------------------------------------------ set-up
+    def _handoff_ground(self) -> torch.Tensor:
+        """(S,) per ψ sample, the height of the ground the robot is handed over on: how far the feet of the
+        last keyframe at or before the handoff sit above the feet of the reference's first frame."""
+        k = int(torch.searchsorted(self.kf_phase, torch.tensor(self.end_phase + _EPS, dtype=torch.float64,
+                                                              device=self.device), right=True)) - 1
+        if k < 0:
+            raise PipelineInputError(f"task {self.data.task}", "clip.handoff_after_landing_s",
+                                     "the handoff comes before the task's first keyframe")
+        first = self.ref_body_pos[0, self.feet_idx, 2].mean()
+        return self.kf_target_pos[:, k][:, self.feet_idx, 2].mean(-1) - first
+
     def _precompute_robot(self) -> None:
         super()._precompute_robot()
         cfg = self.cfg.rewards
@@ -192,6 +214,12 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
         b = self.backend
         s = self._score_fn(b.qpos, b.qvel, b.site_pos, b.site_quat, b.actuator_force, b.foot_contact, action)
         terminated, truncated, crossed = s["terminated"], s["truncated"], s["crossed"]
+        sparse, dense = s["sparse"], s["dense"]
+        if self.handoff_catch is not None:
+            handed = truncated.nonzero().squeeze(-1)
+            if handed.numel():
+                catch = self.handoff_catch(b.qpos[handed], b.qvel[handed], self.handoff_ground[self.sample[handed]])
+                sparse = sparse.index_add(0, handed, self.cfg.rewards.weights.handoff_catch * catch)
         self.next_kf = s["next_kf"]
         missed = crossed & (s["keyframe_error_w"].mean(-1) > self.cfg.sampling.success_threshold_m)
         self.keyframe_missed = self.keyframe_missed | missed
@@ -222,7 +250,6 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
             "terminated_by": {"keyframe_error": s["by_keyframe"], "tilt": s["by_tilt"], "base_height": s["by_height"]},
             "tilt_error_xy": s["tilt_error_xy"],  # which way a fall went (evaluation's endings)
         }
-        sparse, dense = s["sparse"], s["dense"]
         self._count_episodes(done, terminated)
         if bool(done.any()):
             ended = done.nonzero().squeeze(-1)
@@ -297,7 +324,7 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
                 min_height = torch.minimum(min_height, ref_z - tc.base_height_margin)
         by_tilt, by_height = self._falls(tilt_xy, root_pos[:, 2], tc.max_tilt, min_height)
         terminated = terminated | by_tilt | by_height
-        truncated = (phase >= 1.0 - _EPS) & ~terminated
+        truncated = (phase >= self.end_phase - _EPS) & ~terminated
         sparse = sparse + w.termination * terminated.to(torch.float32)
         if w.handoff:  # arriving where the balance policy can take over: upright and slow when the phase ends
             still = torch.exp(-(gravity[:, :2] ** 2).sum(-1) / s2.handoff_tilt - (qvel[:, 0:2] ** 2).sum(-1) / s2.handoff_speed)

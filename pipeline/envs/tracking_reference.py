@@ -100,8 +100,10 @@ class TrackingReference:
         self.kf_scale = self._tensor(d.sparse_scale)
         self.kf_target_pos = self._tensor(m.body_pos[kf][None] + np.asarray(d.keyframe_offsets)[:, :, None])  # (S,K,B,3)
         self.kf_target_quat = self._tensor(m.body_quat[kf])  # (K,B,4): edits only translate
-        self.rsi_frame_table = torch.as_tensor(allowed_start_frames(self.cfg.rsi_frames, kf, d.keyframe_labels, t),
-                                               device=self.device)
+        allowed = allowed_start_frames(self.cfg.rsi_frames, kf, d.keyframe_labels, t)
+        # an episode that ends at the chain's handoff (`end_phase`) never starts at or past it
+        allowed = allowed[allowed < round(self.end_phase * (t - 1))] if self.end_phase < 1.0 else allowed
+        self.rsi_frame_table = torch.as_tensor(allowed, device=self.device)
         self.start_sampler = StartFrameSampler(self.cfg.rsi_sampling, self.rsi_frame_table, t)
         noise = list(self.cfg.rsi_lin_vel_noise) + list(self.cfg.rsi_ang_vel_noise)
         self.rsi_vel_noise = self._tensor(noise) if self.cfg.rsi_prob > 0 and any(noise) else None

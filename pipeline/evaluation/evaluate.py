@@ -56,6 +56,8 @@ def evaluation_env_config(env_cfg, eval_cfg: EvalConfig):
     start_episodes_at_zero(cfg)  # so every keyframe is scored
     if hasattr(cfg, "go_starts"):
         cfg.go_starts.prob = 0.0  # the batch scores from the stance itself; the chains start at the go
+    if hasattr(cfg, "rewards"):
+        cfg.rewards.weights.handoff_catch = 0.0  # the batch scores every keyframe to the phase's end; the chains hand over
     if hasattr(cfg, "sampling"):
         cfg.sampling.mode = "sweep"  # every ψ sample of a range in turn: equal weight, the same ψ for every policy
     if hasattr(cfg, "randomization"):

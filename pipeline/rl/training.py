@@ -61,13 +61,14 @@ def policy_meta(env, data, cfg: TrainConfig, stage: int, phase_rate: float, free
     }
 
 
-def make_env(data, env_cfg, cfg: TrainConfig, *, stage: int, go_states: dict | None = None):
-    """The training env of a stage; `go_states`: where the balance policy hands over (env.go_starts)."""
+def make_env(data, env_cfg, cfg: TrainConfig, *, stage: int, go_states: dict | None = None, handoff=None):
+    """The training env of a stage; `go_states`: where the balance policy hands over (env.go_starts);
+    `handoff`: where the chain hands back to it (envs/handoff_catch.py `Handoff`, for `handoff_catch`)."""
     from pipeline.envs.tracking_env import TrackingEnv
 
     env_cfg = env_config_for(env_cfg, cfg.variant_spec, stage)
     return TrackingEnv(env_cfg, data, num_envs=cfg.num_envs(stage), backend=cfg.backend, device=cfg.device, seed=cfg.seed,
-                       go_states=go_states)
+                       go_states=go_states, handoff=handoff)
 
 
 def env_config_for(env_cfg, variant: Variant, stage: int):
@@ -102,11 +103,11 @@ def pin_observation_stats(env, normalizers, keep_values: bool = False) -> None:
 
 def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, env=None,
                  iterations: int | None = None, time_limit_s: float | None = None, chunk_s: float | None = None,
-                 go_states: dict | None = None, **trainer_kwargs) -> dict:
+                 go_states: dict | None = None, handoff=None, **trainer_kwargs) -> dict:
     """Stage 1 with `cfg.algorithm`'s trainer. `chunk_s`: stop after about this long, resumable (Trainer.run)."""
     variant: Variant = cfg.variant_spec
     seed_everything(cfg.seed)
-    env = env if env is not None else make_env(data, env_cfg, cfg, stage=1, go_states=go_states)
+    env = env if env is not None else make_env(data, env_cfg, cfg, stage=1, go_states=go_states, handoff=handoff)
     phase_rate = phase_rate_of(env, data)
     if cfg.algorithm == "fast_td3":
         from pipeline.rl.fast_td3 import build_fast_td3_trainer
@@ -136,13 +137,13 @@ def train_stage1(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, resume
 
 def train_stage2(data, env_cfg, cfg: TrainConfig, run_dir: str | Path, *, stage1_dir: str | Path, resume: bool = False,
                  env=None, iterations: int | None = None, time_limit_s: float | None = None, chunk_s: float | None = None,
-                 go_states: dict | None = None, **trainer_kwargs) -> dict:
+                 go_states: dict | None = None, handoff=None, **trainer_kwargs) -> dict:
     variant: Variant = cfg.variant_spec
     stage1_dir = Path(stage1_dir)
     if not (stage1_dir / "config.json").is_file():
         raise PipelineInputError(stage1_dir, None, "stage 2 needs a stage-1 policy here (config.json + model.safetensors); train stage 1 first")
     seed_everything(cfg.seed + 1)
-    env = env if env is not None else make_env(data, env_cfg, cfg, stage=2, go_states=go_states)
+    env = env if env is not None else make_env(data, env_cfg, cfg, stage=2, go_states=go_states, handoff=handoff)
     phase_rate = phase_rate_of(env, data)
     expect = policy_meta(env, data, cfg, 1, phase_rate)
     base, base_meta = load_policy(stage1_dir, expect)
