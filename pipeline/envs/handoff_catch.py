@@ -8,9 +8,9 @@ ratio is the balance policy's estimate of catching the robot:
 
     catch(s) = clamp(1 − V_sparse(s) / termination, 0, 1)       1: it stands, 0: it falls at once
 
-On the 196 states the far jump's chains handed `balance_far_jump` over in (its `start_states`), this
-estimate told the 21 the policy held for 3 s from the 175 it dropped with an AUC of 0.99 (its dense
-critic's value: 0.01, the wrong way round). A task trained with `env.rewards.weights.handoff_catch` > 0
+On 196 starts drawn from the 98 states the far jump's chains hand `balance_far_jump` over in (its
+`start_states`, nominal model, no pushes), this estimate told the 21 the policy held for 3 s from the 175
+it dropped with an AUC of 0.99 (its dense critic's value: 0.01, the wrong way round). A task trained with `env.rewards.weights.handoff_catch` > 0
 ends its episodes at the chain's handoff and is paid `handoff_catch · catch(s)` there, the way skill
 chaining makes one skill end inside the next one's starting set.
 
