@@ -81,3 +81,25 @@ def test_the_chain_table_keeps_its_rows_together_and_the_endings_below(tmp_path)
     assert [line for line in lines[first + 2:] if "where the chains ended" in line] == [
         "adamimic, where the chains ended (stretch:check, episodes): task:tilt 64",
         "adamimic_stage1, where the chains ended (stretch:check, episodes): task:tilt 64"]
+
+
+def test_the_committed_comparison_table_is_the_report_over_its_committed_rows(tmp_path):
+    """`models/pretrained/far_jump/comparison/table.md` is what the report stage writes from the rows committed
+    beside it (`adamimic`'s: the committed far jump's own evaluation), every variant of the paper's table."""
+    import shutil
+    from pathlib import Path
+
+    from pipeline.config import load_params
+    from pipeline.rl.config import VARIANTS
+
+    folder = Path(__file__).resolve().parent.parent / "models/pretrained/far_jump/comparison"
+    params = load_params(folder / "params.yaml")
+    assert sorted(params.variants) == sorted(VARIANTS)
+    results = tmp_path / "results"
+    for variant in params.variants:
+        (results / variant).mkdir(parents=True)
+        for name in ("metrics.json", "metrics_dr.json", "per_psi.json", "per_psi.csv"):
+            shutil.copy((folder.parent if variant == "adamimic" else folder / variant) / name, results / variant / name)
+    table = write_report("far_jump_window", list(params.variants), results_dir=results, out_dir=tmp_path / "report",
+                         seeds=params.seeds)
+    assert Path(table).read_text() == (folder / "table.md").read_text()
