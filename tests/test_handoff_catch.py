@@ -104,12 +104,16 @@ def test_a_task_paid_at_the_handoff_ends_there(data):
             if step == KEYFRAMES[1]:
                 assert info["keyframe_index"].eq(1).all()  # the handoff's own keyframe is crossed and paid
                 paid[weight] = rewards["sparse"]
+                logged = info.get("handoff_catch")
+            elif weight:
+                assert info["handoff_catch"].isnan().all()  # no handoff this step
             if truncated.all():
                 break
         ended[weight] = step
     assert ended[0.0] == FRAMES - 1 and ended[100.0] == KEYFRAMES[1]
     catch = paid[100.0] - paid[0.0]
     assert torch.all(catch > 80.0) and torch.all(catch <= 100.0 + 1e-3), catch
+    assert torch.allclose(logged * 100.0, catch, atol=1e-3)  # what the training log averages
 
     rsi = TrackingEnv(quiet_cfg(rewards={"weights": {"handoff_catch": 1.0}}, rsi_prob=1.0), data, num_envs=N,
                       handoff=handoff)
@@ -128,3 +132,17 @@ def test_the_evaluate_stage_scores_the_whole_task_unpaid():
     cfg = quiet_cfg(rewards={"weights": {"handoff_catch": 300.0}})
     assert evaluation_env_config(cfg, EvalConfig()).rewards.weights.handoff_catch == 0.0
     assert cfg.rewards.weights.handoff_catch == 300.0
+
+
+def test_the_training_log_averages_the_catch_of_the_episodes_handed_over():
+    from pipeline.rl.episode_stats import EpisodeStats
+
+    stats = EpisodeStats(3, "cpu")
+    ended = torch.tensor([True, True, False])
+    info = {"handoff_catch": torch.tensor([0.4, float("nan"), float("nan")]),
+            "terminated_by": {"tilt": torch.tensor([False, True, False])}}
+    stats.step({"sparse": torch.ones(3), "dense": torch.ones(3)}, torch.tensor([False, True, False]),
+               torch.tensor([True, False, False]), info)
+    assert ended.sum() == len(stats.finished)
+    assert stats.summary()["handoff_catch"] == pytest.approx(0.4)  # the fall (NaN) is not averaged in
+    assert "handoff_catch" not in EpisodeStats(1, "cpu").summary()

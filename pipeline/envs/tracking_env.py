@@ -215,11 +215,13 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
         s = self._score_fn(b.qpos, b.qvel, b.site_pos, b.site_quat, b.actuator_force, b.foot_contact, action)
         terminated, truncated, crossed = s["terminated"], s["truncated"], s["crossed"]
         sparse, dense = s["sparse"], s["dense"]
+        catch = None
         if self.handoff_catch is not None:
+            catch = torch.full_like(sparse, float("nan"))  # NaN: not handed over this step
             handed = truncated.nonzero().squeeze(-1)
             if handed.numel():
-                catch = self.handoff_catch(b.qpos[handed], b.qvel[handed], self.handoff_ground[self.sample[handed]])
-                sparse = sparse.index_add(0, handed, self.cfg.rewards.weights.handoff_catch * catch)
+                catch[handed] = self.handoff_catch(b.qpos[handed], b.qvel[handed], self.handoff_ground[self.sample[handed]])
+                sparse = sparse.index_add(0, handed, self.cfg.rewards.weights.handoff_catch * catch[handed])
         self.next_kf = s["next_kf"]
         missed = crossed & (s["keyframe_error_w"].mean(-1) > self.cfg.sampling.success_threshold_m)
         self.keyframe_missed = self.keyframe_missed | missed
@@ -250,6 +252,8 @@ class TrackingEnv(TrackingObservations, TrackingReference, TrackingResets, Robot
             "terminated_by": {"keyframe_error": s["by_keyframe"], "tilt": s["by_tilt"], "base_height": s["by_height"]},
             "tilt_error_xy": s["tilt_error_xy"],  # which way a fall went (evaluation's endings)
         }
+        if catch is not None:
+            info["handoff_catch"] = catch  # the training log's mean catch at the handoff
         self._count_episodes(done, terminated)
         if bool(done.any()):
             ended = done.nonzero().squeeze(-1)

@@ -36,8 +36,13 @@ class EpisodeStats:
         done = terminated | truncated
         causes = info.get("terminated_by") or {}
         columns = ["success", "length", *GROUPS, *(f"ended_by_{name}" for name in causes)]
-        values = torch.stack([(~self.failed).float(), self.steps.float(), *(self.returns[g] for g in GROUPS),
-                              *((terminated & flags.bool()).float() for flags in causes.values())], dim=1)
+        figures = [(~self.failed).float(), self.steps.float(), *(self.returns[g] for g in GROUPS),
+                   *((terminated & flags.bool()).float() for flags in causes.values())]
+        catch = info.get("handoff_catch")  # what the balance policy made of the state handed over (NaN: none)
+        if catch is not None:
+            columns.append("handoff_catch")
+            figures.append(catch.float())
+        values = torch.stack(figures, dim=1)
         if self._pending and (self._pending[0][0] != columns or len(self._pending) >= MAX_PENDING_STEPS):
             self._flush()
         self._pending.append((columns, done, values))
@@ -79,6 +84,9 @@ class EpisodeStats:
         # share of finished episodes each termination check ended (diagnostics)
         for key in sorted({k for e in finished for k in e if k.startswith("ended_by_")}):
             out[key] = float(np.mean([e.get(key, 0.0) for e in finished]))
+        handed = [e["handoff_catch"] for e in finished if not np.isnan(e.get("handoff_catch", np.nan))]
+        if handed:  # the mean catch estimate of the episodes that reached the chain's handoff
+            out["handoff_catch"] = float(np.mean(handed))
         return out
 
     def state_dict(self) -> dict:
