@@ -48,7 +48,8 @@ def test_without_chunk_minutes_the_run_is_not_chunked(trainer_calls):
 
 
 def test_a_task_paid_at_its_handoff_trains_with_its_chains_handoff_and_catcher():
-    """far_jump_rest's recipe: the handoff at its landing keyframe, judged by balance.out's training checkpoint."""
+    """far_jump_rest's recipe paid with the catch: the handoff at its landing keyframe, judged by balance.out's
+    training checkpoint; unpaid (as committed), no handoff to train to."""
     from pathlib import Path
     from types import SimpleNamespace
 
@@ -58,6 +59,8 @@ def test_a_task_paid_at_its_handoff_trains_with_its_chains_handoff_and_catcher()
     params = load_params(folder / "params_cpu.yaml")
     data = SimpleNamespace(task="far_jump_rest", motion=SimpleNamespace(num_frames=126, fps=50.0),
                            keyframe_frames=[60, 85, 110], keyframe_labels=("takeoff", "landing", ""))
+    assert stages._handoff(params, "far_jump_rest", data) is None
+    params.env.rewards.weights.handoff_catch = 300.0
     handoff = stages._handoff(params, "far_jump_rest", data)
     assert handoff.phase == pytest.approx(85 / 125)  # clip.handoff_after_landing_s: 0.0
     assert handoff.balance_checkpoint.resolve() == (folder.parent / "balance_far_jump/train/policy").resolve()
