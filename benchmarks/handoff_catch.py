@@ -1,6 +1,6 @@
 """What a catcher's critic says of a chain's handoffs, against what the catcher then does.
 
-    .venv/bin/python benchmarks/handoff_catch.py models/pretrained/far_jump_rest/export \
+    .venv/bin/python benchmarks/handoff_catch.py [models/pretrained/far_jump_rest/export] \
         [--catcher models/pretrained/balance_far_jump/train/policy] [--chains 12]
 
 Runs the export's chain (stand, go, task, balance; `ChainRunner`, nominal model) at `--chains` ψ evenly over
@@ -8,8 +8,8 @@ the task's easy range, reads the robot's state on the last task step (the handof
 catch estimate a task paid with `env.rewards.weights.handoff_catch` would get there
 (`pipeline/envs/handoff_catch.py`), how the chain ended, and the state's speed, pelvis height and tilt; then the
 mean estimate and how well it ranks the chains that stood above those that fell (AUC, when both happened).
-The estimate is the catcher's own: `--catcher` a balance training checkpoint (default: the one whose export
-the chain hands over to is usually trained from, `balance_far_jump`).
+The estimate is the catcher's own: `--catcher` a balance training checkpoint (default: the far jump's catcher,
+`balance_far_jump`, whose export the default export's chain hands over to).
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def ranking(rows: list[dict]) -> float | None:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("export", type=Path)
+    parser.add_argument("export", type=Path, nargs="?", default=Path("models/pretrained/far_jump_rest/export"))
     parser.add_argument("--catcher", type=Path, default=Path(DEFAULT_CATCHER))
     parser.add_argument("--chains", type=int, default=12)
     args = parser.parse_args(argv)
