@@ -19,7 +19,7 @@ import torch
 from pipeline.common.errors import PipelineInputError
 from pipeline.envs import rewards as R
 from pipeline.envs.balance_config import BalanceEnvConfig
-from pipeline.envs.robot_env import PENALTY_TERMS, RobotEnv, proprio_dim
+from pipeline.envs.robot_env import PENALTY_TERMS, RobotEnv, proprio_dim, proprio_frame
 from pipeline.envs.torch_math import projected_gravity, quat_rotate_inverse, wrap_angle, yaw_angle, yaw_quat
 from pipeline.robot.g1 import default_qpos, load_robot_config
 
@@ -38,6 +38,14 @@ def balance_actuation(cfg: BalanceEnvConfig, robot=None) -> tuple[np.ndarray, np
     scale = np.array(robot.action_scale, dtype=np.float64)
     scale[[robot.joint_names.index(name) for name in cfg.frozen_joints]] = 0.0
     return target, scale
+
+
+def balance_features(qpos, qvel, gravity, foot_contact, prev_action, default_joint_pos):
+    """(frame, privileged) of the balance env's observations: one step of proprioception, and the critic's
+    base velocity (base frame), pelvis height (`qpos` z: the ground is at 0) and feet in contact."""
+    frame = proprio_frame(qpos, qvel, gravity, prev_action, default_joint_pos)
+    lin_vel_b = quat_rotate_inverse(qpos[:, 3:7], qvel[:, 0:3])
+    return frame, torch.cat([lin_vel_b, qpos[:, 2:3], foot_contact.to(torch.float32)], dim=-1)
 
 
 def flat_scene(physics: str, source: str) -> mujoco.MjModel:
@@ -144,10 +152,7 @@ class BalanceEnv(RobotEnv):
         return self._obs_dict(), {"sparse": s["sparse"], "dense": s["dense"]}, terminated, truncated, info
 
     def _features(self, qpos, qvel, gravity, foot_contact, prev_action):
-        frame = self._proprio(qpos, qvel, gravity, prev_action)
-        lin_vel_b = quat_rotate_inverse(qpos[:, 3:7], qvel[:, 0:3])
-        privileged = torch.cat([lin_vel_b, qpos[:, 2:3], foot_contact.to(torch.float32)], dim=-1)
-        return frame, privileged
+        return balance_features(qpos, qvel, gravity, foot_contact, prev_action, self.default_joint_pos)
 
     def _score(self, qpos, qvel, site_pos, site_quat, torque, foot_contact, action) -> dict:
         cfg, s2 = self.cfg, self.cfg.rewards.sigma2

@@ -27,7 +27,8 @@ from pathlib import Path
 import torch
 
 from pipeline.common.errors import PipelineInputError
-from pipeline.envs.torch_math import projected_gravity, quat_rotate_inverse
+from pipeline.envs.balance_env import balance_features
+from pipeline.envs.torch_math import projected_gravity
 
 
 @dataclass(frozen=True)
@@ -76,12 +77,11 @@ class HandoffCatch:
     def observation(self, qpos: torch.Tensor, qvel: torch.Tensor, ground: torch.Tensor) -> torch.Tensor:
         """(N, critic_obs_dim): the balance critic's observation of a fresh start in these states; `ground`
         (N,) the height of the ground the robot stands on."""
-        gravity = projected_gravity(qpos[:, 3:7])
-        no_action = torch.zeros_like(qpos[:, 7:])
-        frame = torch.cat([qvel[:, 3:6], gravity, qpos[:, 7:] - self.default_joint_pos, qvel[:, 6:], no_action], -1)
-        lin_vel_b = quat_rotate_inverse(qpos[:, 3:7], qvel[:, 0:3])
-        no_contact = torch.zeros_like(qpos[:, :2])
-        privileged = torch.cat([lin_vel_b, (qpos[:, 2] - ground)[:, None], no_contact], -1)
+        on_flat_ground = qpos.clone()
+        on_flat_ground[:, 2] -= ground  # the balance env's floor is at 0
+        no_contact = torch.zeros(qpos.shape[0], 2, dtype=torch.bool, device=qpos.device)
+        frame, privileged = balance_features(on_flat_ground, qvel, projected_gravity(qpos[:, 3:7]), no_contact,
+                                             torch.zeros_like(qpos[:, 7:]), self.default_joint_pos)
         return torch.cat([frame.repeat(1, self.history), privileged], -1)
 
     @torch.no_grad()

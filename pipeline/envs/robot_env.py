@@ -42,6 +42,11 @@ def proprio_dim(num_joints: int) -> int:
     return 3 + 3 + 3 * num_joints
 
 
+def proprio_frame(qpos, qvel, gravity, prev_action, default_joint_pos) -> torch.Tensor:
+    """One step of proprioception (`proprio_dim`), in the order the exported layouts name it."""
+    return torch.cat([qvel[:, 3:6], gravity, qpos[:, 7:] - default_joint_pos, qvel[:, 6:], prev_action], dim=-1)
+
+
 class RobotEnv:
     SHARED_BUFFERS = ("episode_step", "prev_action", "prev_action2", "prev_joint_vel", "obs_history", "privileged",
                       "target_history", "delay_lag", "delay_substeps", "push_timer")
@@ -209,8 +214,7 @@ class RobotEnv:
 
     # ------------------------------------------------------------------------------------ pure per-step pieces
     def _proprio(self, qpos, qvel, gravity, prev_action) -> torch.Tensor:
-        """One step of proprioception (`proprio_dim`), in the order the exported layouts name it."""
-        return torch.cat([qvel[:, 3:6], gravity, qpos[:, 7:] - self.default_joint_pos, qvel[:, 6:], prev_action], dim=-1)
+        return proprio_frame(qpos, qvel, gravity, prev_action, self.default_joint_pos)
 
     def _penalty_terms(self, joint_pos, joint_vel, joint_acc, torque, feet_quat, foot_contact, action) -> dict:
         """The regularisers of `PENALTY_TERMS` (each weighted by a negative `rewards.weights` entry)."""
