@@ -16,7 +16,8 @@ from pipeline.common.errors import PipelineInputError
 
 PROFILES = ("cpu", "gpu")
 PAPER_TASKS = Path(__file__).resolve().parent / "keyframes" / "paper_tasks.yaml"
-TOP_LEVEL_KEYS = ("profile", "variants", "extra_seeds", "retarget", "tasks", "env", "train", "evaluate", "balance")
+TOP_LEVEL_KEYS = ("profile", "variants", "extra_seeds", "seed_variants", "retarget", "tasks", "env", "train", "evaluate",
+                  "balance")
 
 
 @dataclass
@@ -33,6 +34,11 @@ class PipelineConfig:
     # Training seeds beside train.seed: each trains stage 1 + 2 and is evaluated like the main policy,
     # and the report gives success over all of them (mean, spread).
     extra_seeds: tuple[int, ...] = ()
+    # The variants the report gives over every training seed (all of `variants` unless the file names some):
+    # a comparison of ten methods can spend its second seeds on the rows whose order decides a claim.
+    # dvc.yaml trains every variant at each extra seed, so a DVC sweep seeds some rows only by setting
+    # extra_seeds in their experiments alone.
+    seed_variants: tuple[str, ...] = ()
     balance: Any = None  # pipeline.balance.config.BalanceConfig: the policy every task's chain stands with
 
     @property
@@ -132,6 +138,7 @@ def load_params(path: str | Path = "params.yaml") -> PipelineConfig:
         evaluate=EvalConfig.from_dict(_section(raw, "evaluate", path), where="evaluate"),
         raw=raw,
         extra_seeds=_extra_seeds(raw.get("extra_seeds", []), train.seed, path),
+        seed_variants=_seed_variants(raw.get("seed_variants", variants), variants, path),
         balance=BalanceConfig.from_dict(_section(raw, "balance", path), profile),
     )
 
@@ -148,6 +155,17 @@ def _extra_seeds(value, main_seed: int, path: Path) -> tuple[int, ...]:
             raise PipelineInputError(path, f"extra_seeds[{i}]", f"is train.seed ({main_seed}), which trains already")
     if len(set(value)) != len(value):
         raise PipelineInputError(path, "extra_seeds", "lists a seed twice")
+    return tuple(value)
+
+
+def _seed_variants(value, variants: list[str], path: Path) -> tuple[str, ...]:
+    if not isinstance(value, list):
+        raise PipelineInputError(path, "seed_variants", f"must be a list of variant names, got {type(value).__name__}")
+    for i, name in enumerate(value):
+        if name not in variants:
+            raise PipelineInputError(path, f"seed_variants[{i}]", f"{name!r} is not one of variants {variants}")
+    if len(set(value)) != len(value):
+        raise PipelineInputError(path, "seed_variants", "lists a variant twice")
     return tuple(value)
 
 

@@ -243,7 +243,8 @@ def run_report(params: PipelineConfig, args) -> None:
     from pipeline.evaluation.report import write_report
 
     table = write_report(args.task, list(params.variants), results_dir=paths.results_dir(args.task),
-                         out_dir=paths.report_dir(args.task), seeds=params.seeds)
+                         out_dir=paths.report_dir(args.task), seeds=params.seeds,
+                         seed_variants=list(params.seed_variants))
     print(Path(table).read_text())
 
 

@@ -229,7 +229,8 @@ def endings_line(doc: dict) -> str:
 
 def seed_summary(docs_by_seed: dict[int, dict]) -> dict:
     """Success over training seeds, per range: each seed's success (its metrics' mean over evaluation
-    runs), their mean, sample std (ddof 1; null for one seed), min and max. From {seed: metrics json}."""
+    runs), their mean, sample std (ddof 1; null for one seed), min and max; and each seed's E_g-bpe (mm)
+    and their mean where every seed's metrics have it. From {seed: metrics json}."""
     seeds = list(docs_by_seed)
     ranges = [g for g in RANGE_ORDER if all(g in d["ranges"] for d in docs_by_seed.values())]
     out: dict = {"seeds": seeds, "ranges": {}}
@@ -242,11 +243,17 @@ def seed_summary(docs_by_seed: dict[int, dict]) -> dict:
             "success_min": float(values.min()),
             "success_max": float(values.max()),
         }
+        # the body error decides two of the paper's claims, so its spread over seeds goes beside success's
+        errors = [docs_by_seed[s]["ranges"][g].get("e_g_bpe", {}).get("mean") for s in seeds]
+        if all(e is not None for e in errors):
+            out["ranges"][g]["e_g_bpe_per_seed"] = {str(s): float(e) for s, e in zip(seeds, errors)}
+            out["ranges"][g]["e_g_bpe_mean"] = float(np.mean(errors))
     return out
 
 
-def seeds_table(summaries: dict[str, dict], heading: str = "##") -> str:
-    """Markdown: success (%) per training seed and over them, one row per variant, from seed_summary."""
+def seeds_table(summaries: dict[str, dict], heading: str = "##", unseeded: list[str] | tuple = ()) -> str:
+    """Markdown: success (%) per training seed and over them, one row per variant, from seed_summary; the
+    `unseeded` variants (trained at the first seed only) named below it."""
     if not summaries:
         return ""
     seeds = next(iter(summaries.values()))["seeds"]
@@ -254,10 +261,10 @@ def seeds_table(summaries: dict[str, dict], heading: str = "##") -> str:
     lines = [f"\n{heading} Success over training seeds ({len(seeds)}: {', '.join(map(str, seeds))})\n",
              "Each seed trains stage 1 + 2 from scratch with everything else equal, and is evaluated as above. "
              "The table above is the first seed's policy alone; how far it moves from seed to seed is here: "
-             "mean ± sample std over seeds [min–max], then each seed's success (%).\n",
-             "| Method | " + " | ".join(f"{g} Succ. over seeds" for g in groups) + " | per seed (" +
-             " / ".join(groups) + ") |",
-             "|---|" + "---|" * (len(groups) + 1)]
+             "mean ± sample std over seeds [min–max], then each seed's success (%) and overall E_g-bpe (mm).\n",
+             "| Method | " + " | ".join(f"{g} Succ. over seeds" for g in groups) + " | overall E_g-bpe over seeds "
+             "| per seed (" + " / ".join(groups) + "; E_g-bpe) |",
+             "|---|" + "---|" * (len(groups) + 2)]
     for variant, summary in summaries.items():
         cells = []
         for g in groups:
@@ -267,10 +274,16 @@ def seeds_table(summaries: dict[str, dict], heading: str = "##") -> str:
                 continue
             std = "–" if r["success_std"] is None else f"{r['success_std']:.1f}"
             cells.append(f"{r['success_mean']:.1f} ± {std} [{r['success_min']:.1f}–{r['success_max']:.1f}]")
+        errors = summary["ranges"].get("overall", {}).get("e_g_bpe_per_seed")
+        error_cell = "–" if errors is None else (f"{summary['ranges']['overall']['e_g_bpe_mean']:.1f} "
+                                                 f"[{min(errors.values()):.1f}–{max(errors.values()):.1f}]")
         per_seed = "; ".join(f"seed {s}: " + " / ".join(f"{summary['ranges'][g]['success_per_seed'][str(s)]:.1f}"
                                                       for g in groups if g in summary["ranges"])
+                             + ("" if errors is None else f", {errors[str(s)]:.1f} mm")
                              for s in summary["seeds"])
-        lines.append(f"| {variant} | " + " | ".join(cells) + f" | {per_seed} |")
+        lines.append(f"| {variant} | " + " | ".join(cells) + f" | {error_cell} | {per_seed} |")
+    if unseeded:
+        lines.append(f"\nThe other rows are trained at the first seed only: {', '.join(unseeded)} (`seed_variants`).")
     return "\n".join(lines) + "\n"
 
 
@@ -284,11 +297,13 @@ def _load_metrics(path: Path, what: str) -> dict:
 
 
 def write_report(task: str, variants: list[str], results_dir: str | Path, out_dir: str | Path,
-                 seeds: tuple[int, ...] | list[int] = (), figures: str | Path = FIGURES) -> Path:
+                 seeds: tuple[int, ...] | list[int] = (), figures: str | Path = FIGURES,
+                 seed_variants: list[str] | None = None) -> Path:
     """reports/<task>/: table.md over the variants evaluated (then the rest-to-rest chains, the spread over
     training seeds, and the paper's rows and claims from `figures`, evaluation/paper.py), per-ψ figure of all
     variants, and seeds.json: success over the training `seeds` (the first is the main run's train.seed, in
-    results/<task>/<variant>/; the others in results/<task>/<variant>/seeds/<seed>/)."""
+    results/<task>/<variant>/; the others in results/<task>/<variant>/seeds/<seed>/), for the
+    `seed_variants` (all of `variants` when None)."""
     results_dir, out_dir = Path(results_dir), Path(out_dir)
     docs, rows, ranges, summaries = {}, {}, {}, {}
     for variant in variants:
@@ -298,7 +313,7 @@ def write_report(task: str, variants: list[str], results_dir: str | Path, out_di
         per_psi = results_dir / variant / "per_psi.json"
         if per_psi.is_file():
             rows[variant] = json.loads(per_psi.read_text())
-        if seeds:
+        if seeds and (seed_variants is None or variant in seed_variants):
             by_seed = {seeds[0]: docs[variant]}
             for seed in seeds[1:]:
                 by_seed[seed] = _load_metrics(results_dir / variant / "seeds" / str(seed) / "metrics.json",
@@ -308,7 +323,8 @@ def write_report(task: str, variants: list[str], results_dir: str | Path, out_di
                   if (results_dir / v / "metrics_dr.json").is_file()}
     out_dir.mkdir(parents=True, exist_ok=True)
     table = (f"# {task}\n\n" + results_table(docs) + rest_to_rest_table(docs, randomised)
-             + (seeds_table(summaries) if len(seeds) > 1 else "") + paper_section(docs, figures))
+             + (seeds_table(summaries, unseeded=[v for v in variants if v not in summaries])
+                if len(seeds) > 1 and summaries else "") + paper_section(docs, figures))
     write_text_atomic(out_dir / "table.md", table)
     if summaries:
         write_text_atomic(out_dir / "seeds.json", json.dumps(summaries, indent=1))
