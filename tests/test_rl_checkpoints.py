@@ -44,6 +44,23 @@ def test_resume_reproduces_the_next_iteration_bit_for_bit(tmp_path, noise_correl
     assert [h["policy_loss"] for h in straight.history] == [h["policy_loss"] for h in resumed.history]
 
 
+def test_a_new_run_in_a_used_folder_leaves_nothing_of_the_old_run_to_resume(tmp_path):
+    """A run started without --resume where another run finished: the old run's checkpoints and its finished
+    metrics go, so a --resume after this run's first chunk continues this run, not the old one."""
+    cfg = small_cfg(save_interval=2, ppo={"num_envs": 32, "steps_per_iteration": 8, "epochs": 2, "minibatches": 2})
+    _trainer(tmp_path / "run", cfg, seed=0).run(6)
+    assert (tmp_path / "run" / "metrics.json").is_file()
+    assert (tmp_path / "run" / "checkpoints" / "latest").read_text().strip() == "iter_000006"
+    again = _trainer(tmp_path / "run", cfg, seed=1)
+    assert again.run(6, chunk_s=0.0)["paused"]  # stops at its first checkpoint, iteration 2
+    assert (tmp_path / "run" / "checkpoints" / "latest").read_text().strip() == "iter_000002"
+    assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").glob("iter_*")) == ["iter_000002"]
+    assert not (tmp_path / "run" / "metrics.json").exists()
+    resumed = _trainer(tmp_path / "run", cfg, seed=99)
+    resumed.run(6, resume=True)
+    assert [h["iteration"] for h in resumed.history][:2] == [1, 2] and resumed.history[-1]["iteration"] == 6
+
+
 def test_a_warm_start_takes_the_networks_and_optimiser_but_counts_its_own_iterations(tmp_path):
     cfg = small_cfg(save_interval=2, ppo={"num_envs": 32, "steps_per_iteration": 8, "epochs": 2, "minibatches": 2})
     first = _trainer(tmp_path / "a", cfg, seed=0)

@@ -179,6 +179,12 @@ class CheckpointManager:
         path = self.root / pointer.read_text().strip()
         return path if (path / STATE_FILE).is_file() else None
 
+    def clear(self) -> None:
+        """Forget every checkpoint here (a new run starting in this folder)."""
+        (self.root / "latest").unlink(missing_ok=True)
+        for old in self.root.glob("iter_*"):
+            shutil.rmtree(old, ignore_errors=True)
+
     def save(self, iteration: int, policy, critic, meta: dict, training_state: dict) -> Path:
         name = f"iter_{iteration:06d}"
         with atomic_dir(self.root / name) as staging:

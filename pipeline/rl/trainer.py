@@ -156,6 +156,11 @@ class Trainer:
         start, obs = 0, None
         if resume:
             start, obs = self._restore()
+        else:
+            # A new run in a folder another run used: a later --resume must not take that run's checkpoints
+            # (its `latest`) or its finished stage (metrics.json: the stages skip a finished stage 1) for this one's.
+            self.checkpoints.clear()
+            (self.run_dir / "metrics.json").unlink(missing_ok=True)
         if start == 0 and not self.warm_started:
             self._warm_up_normalizers()
         writer = self._writer()
