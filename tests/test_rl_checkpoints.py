@@ -51,11 +51,13 @@ def test_a_new_run_in_a_used_folder_leaves_nothing_of_the_old_run_to_resume(tmp_
     _trainer(tmp_path / "run", cfg, seed=0).run(6)
     assert (tmp_path / "run" / "metrics.json").is_file()
     assert (tmp_path / "run" / "checkpoints" / "latest").read_text().strip() == "iter_000006"
+    (tmp_path / "run" / "tensorboard").mkdir()
+    (tmp_path / "run" / "tensorboard" / "events.out.tfevents.old").write_text("the old run's curves")
     again = _trainer(tmp_path / "run", cfg, seed=1)
     assert again.run(6, chunk_s=0.0)["paused"]  # stops at its first checkpoint, iteration 2
     assert (tmp_path / "run" / "checkpoints" / "latest").read_text().strip() == "iter_000002"
     assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").glob("iter_*")) == ["iter_000002"]
-    assert not (tmp_path / "run" / "metrics.json").exists()
+    assert not (tmp_path / "run" / "metrics.json").exists() and not (tmp_path / "run" / "tensorboard").exists()
     resumed = _trainer(tmp_path / "run", cfg, seed=99)
     resumed.run(6, resume=True)
     assert [h["iteration"] for h in resumed.history][:2] == [1, 2] and resumed.history[-1]["iteration"] == 6

@@ -21,6 +21,7 @@ import copy
 import itertools
 import json
 import math
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -158,9 +159,11 @@ class Trainer:
             start, obs = self._restore()
         else:
             # A new run in a folder another run used: a later --resume must not take that run's checkpoints
-            # (its `latest`) or its finished stage (metrics.json: the stages skip a finished stage 1) for this one's.
+            # (its `latest`) or its finished stage (metrics.json: the stages skip a finished stage 1) for this
+            # one's, and its curves must not be drawn over this run's in TensorBoard.
             self.checkpoints.clear()
             (self.run_dir / "metrics.json").unlink(missing_ok=True)
+            shutil.rmtree(self.run_dir / "tensorboard", ignore_errors=True)
         if start == 0 and not self.warm_started:
             self._warm_up_normalizers()
         writer = self._writer()
