@@ -85,7 +85,8 @@ def test_the_chain_table_keeps_its_rows_together_and_the_endings_below(tmp_path)
 
 def test_the_committed_comparison_table_is_the_report_over_its_committed_rows(tmp_path):
     """`models/pretrained/far_jump/comparison/table.md` is what the report stage writes from the rows committed
-    beside it (`adamimic`'s: the committed far jump's own evaluation), every variant of the paper's table."""
+    beside it (`adamimic`'s: the committed far jump's own evaluation, and its seed 1), every variant of the paper's
+    table, with the spread over the training seeds of the rows trained again."""
     import shutil
     from pathlib import Path
 
@@ -100,6 +101,10 @@ def test_the_committed_comparison_table_is_the_report_over_its_committed_rows(tm
         (results / variant).mkdir(parents=True)
         for name in ("metrics.json", "metrics_dr.json", "per_psi.json", "per_psi.csv"):
             shutil.copy((folder.parent if variant == "adamimic" else folder / variant) / name, results / variant / name)
+    for variant in params.seed_variants:  # the rows trained again at the extra seeds
+        for seed in params.extra_seeds:
+            shutil.copytree((folder.parent if variant == "adamimic" else folder / variant) / "seeds" / str(seed),
+                            results / variant / "seeds" / str(seed))
     table = write_report("far_jump_window", list(params.variants), results_dir=results, out_dir=tmp_path / "report",
-                         seeds=params.seeds)
+                         seeds=params.seeds, seed_variants=list(params.seed_variants))
     assert Path(table).read_text() == (folder / "table.md").read_text()
