@@ -82,6 +82,25 @@ def test_a_warm_start_takes_the_networks_and_optimiser_but_counts_its_own_iterat
         tuned.warm_start(tmp_path / "nowhere")
 
 
+def test_a_warm_start_from_a_committed_run_takes_its_final_networks(tmp_path):
+    """A committed run keeps `policy/` (networks, normalisers, critic) and not its checkpoints: a fine-tune
+    from it starts from those networks with a fresh optimiser."""
+    import shutil
+
+    cfg = small_cfg(save_interval=2, ppo={"num_envs": 32, "steps_per_iteration": 8, "epochs": 2, "minibatches": 2})
+    first = _trainer(tmp_path / "a", cfg, seed=0)
+    first.run(2)
+    shutil.rmtree(tmp_path / "a" / "checkpoints")  # as committed under models/pretrained/<name>/train
+    tuned = _trainer(tmp_path / "b", cfg, seed=99)
+    tuned.warm_start(tmp_path / "a")
+    for (k, a), b in zip(first.policy.state_dict().items(), tuned.policy.state_dict().values()):
+        assert torch.equal(a, b), k
+    for a, b in zip(first.critic.state_dict().values(), tuned.critic.state_dict().values()):
+        assert torch.equal(a, b)
+    tuned.run(1)
+    assert [h["iteration"] for h in tuned.history] == [1]
+
+
 def test_weight_average_means_floats_and_keeps_the_latest_of_the_rest():
     average = WeightAverage()
     average.add({"w": torch.tensor([1.0, 2.0]), "n": torch.tensor(3)})

@@ -293,20 +293,25 @@ class Trainer:
     def warm_start(self, path: str | Path) -> None:
         """Starts this run from a checkpoint's networks (normalisers included) and optimiser, with its own
         iteration count, history, curricula and env: a fine-tune. Before `run`, which then leaves the
-        normalisers' statistics as they came."""
+        normalisers' statistics as they came. A committed run (its `policy/` kept, its checkpoints not)
+        gives its networks alone, and the optimiser starts afresh."""
         path = Path(path)
         if (path / "checkpoints").is_dir():  # a run folder: its latest checkpoint
             path = path / "checkpoints"
         if (path / "latest").is_file():  # a checkpoints folder: the one its pointer names
             path = CheckpointManager(path.parent, 1).latest() or path
-        if not (path / "training_state.pt").is_file():
-            raise PipelineInputError(path, "training_state.pt", "not a training checkpoint (init_from names a run, its "
-                                     "checkpoints folder or one checkpoint)")
+        if not (path / "training_state.pt").is_file() and (path / "policy" / "config.json").is_file():
+            path = path / "policy"  # a finished run without its checkpoints: its final networks
+        with_state = (path / "training_state.pt").is_file()
+        if not with_state and not (path / "config.json").is_file():
+            raise PipelineInputError(path, "training_state.pt", "not a training checkpoint nor a policy (init_from "
+                                     "names a run, its checkpoints folder, one checkpoint or a policy folder)")
         check_compatible(read_meta(path), self.meta, path)
         policy, _ = load_policy(path)
         self.policy.load_state_dict(policy.state_dict())
         self._load_critic(path)
-        self._load_algorithm_state(CheckpointManager.load_state(path), path)
+        if with_state:
+            self._load_algorithm_state(CheckpointManager.load_state(path), path)
         self.warm_started = True
         self.log(f"[train] warm start from {path}")
 
