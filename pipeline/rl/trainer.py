@@ -158,9 +158,8 @@ class Trainer:
         if resume:
             start, obs = self._restore()
         else:
-            # A new run in a folder another run used: a later --resume must not take that run's checkpoints
-            # (its `latest`) or its finished stage (metrics.json: the stages skip a finished stage 1) for this
-            # one's, and its curves must not be drawn over this run's in TensorBoard.
+            # a new run where another ran: a later --resume must not take that run's checkpoints or finished
+            # stage (metrics.json: the stages skip a finished stage 1) for this one's, nor TensorBoard its curves
             self.checkpoints.clear()
             (self.run_dir / "metrics.json").unlink(missing_ok=True)
             shutil.rmtree(self.run_dir / "tensorboard", ignore_errors=True)
@@ -301,7 +300,7 @@ class Trainer:
         if (path / "latest").is_file():  # a checkpoints folder: the one its pointer names
             path = CheckpointManager(path.parent, 1).latest() or path
         if not (path / "training_state.pt").is_file() and (path / "policy" / "config.json").is_file():
-            path = path / "policy"  # a finished run without its checkpoints: its final networks
+            path = path / "policy"  # a committed run: its final networks
         with_state = (path / "training_state.pt").is_file()
         if not with_state and not (path / "config.json").is_file():
             raise PipelineInputError(path, "training_state.pt", "not a training checkpoint nor a policy (init_from "
